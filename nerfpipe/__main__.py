@@ -1,0 +1,5 @@
+import sys
+
+from nerfpipe.cli import main
+
+sys.exit(main())

@@ -1,0 +1,49 @@
+"""The ``nerfpipe`` command: a thin tyro entry point over the command functions.
+
+Each subcommand is a function in ``nerfpipe/commands/<name>.py`` whose typed, documented
+arguments become the CLI (tyro). Command modules import heavy libraries lazily, inside the
+function, so ``nerfpipe --help`` stays fast.
+
+User errors (:class:`~nerfpipe.errors.NerfpipeError`) print one line and exit 2;
+``--debug`` anywhere on the command line shows the traceback instead.
+"""
+
+import os
+import sys
+import warnings
+
+from nerfpipe.errors import NerfpipeError
+
+
+def _commands() -> dict:
+    from nerfpipe.commands import check, info
+
+    return {
+        "info": info.info,
+        "check": check.check,
+    }
+
+
+def main(argv: "list[str] | None" = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("NERFPIPE_DEBUG") == "1"
+    argv = [a for a in argv if a != "--debug"]
+    import tyro
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            result = tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="nerfpipe")
+    except NerfpipeError as exc:
+        if debug:
+            raise
+        print(f"nerfpipe: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("nerfpipe: interrupted", file=sys.stderr)
+        return 130
+    return int(result) if isinstance(result, int) else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

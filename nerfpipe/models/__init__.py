@@ -1,0 +1,1 @@
+"""Layer 2: radiance-field models (stateful ``nn.Module``s) and their registry."""

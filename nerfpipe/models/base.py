@@ -1,0 +1,99 @@
+"""The protocol every NeRF model follows, so one trainer, renderer and mesher serve them all.
+
+A model is built from its config dataclass by ``config.setup(scene_info)`` and renders a
+:class:`~nerfpipe.rays.RayBundle` into :class:`RenderOutputs`. Models are registered in the
+entry-point group ``nerfpipe.models`` as :class:`ModelSpec` objects.
+"""
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Callable
+
+import torch
+from torch import nn
+
+from nerfpipe.rays import RayBundle
+from nerfpipe.typing import Float, Tensor
+
+
+@dataclass
+class RenderOutputs:
+    """What rendering a batch of rays returns."""
+
+    rgb: Float[Tensor, "*bs 3"]
+    """Composited colour, background included."""
+    depth: Float[Tensor, "*bs"]
+    """Expected distance along the ray (``sum w_i t_i``; divide by ``acc`` for the surface)."""
+    acc: Float[Tensor, "*bs"]
+    """Accumulated opacity ``sum w_i`` in [0, 1]."""
+    num_samples: int = 0
+    """Samples evaluated by the field for this batch (for cost reports)."""
+    extras: "dict[str, Tensor]" = field(default_factory=dict)
+    """Model-specific outputs (e.g. weights for a distortion loss)."""
+
+
+@dataclass
+class SceneInfo:
+    """What a model may know about the scene when it is built (no images)."""
+
+    aabb: Float[Tensor, "2 3"]
+    near: float
+    far: float
+    num_images: int
+    pixels_per_image: int
+    has_alpha: bool = False
+
+
+class Callback(Enum):
+    """Named places in the training loop where hooks fire (STYLE habit 15)."""
+
+    BEFORE_TRAIN_ITERATION = "before_train_iteration"
+    AFTER_TRAIN_ITERATION = "after_train_iteration"
+    AFTER_TRAIN = "after_train"
+
+
+class Model(nn.Module):
+    """Base class of radiance-field models.
+
+    Subclasses implement :meth:`get_outputs` and :meth:`density_fn`; the others have
+    sensible defaults.
+    """
+
+    def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
+        """Render rays, compositing over ``background`` (one colour per ray)."""
+        raise NotImplementedError
+
+    def density_fn(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+        """Volume density at world points (for meshing and occupancy)."""
+        raise NotImplementedError
+
+    def rgb_fn(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+        """Colour at world points seen along ``directions`` (for mesh vertex colours)."""
+        raise NotImplementedError
+
+    def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
+        """Loss terms; the trainer sums them. Default: MSE on colour."""
+        return {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
+
+    def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":
+        """Hooks by place, each called with the step number (e.g. occupancy-grid updates)."""
+        return {}
+
+    def param_groups(self) -> "list[dict]":
+        """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr."""
+        return [{"params": [p for p in self.parameters() if p.requires_grad]}]
+
+    def stats(self) -> "dict[str, float]":
+        """Figures for metrics.json (parameters, MB, occupied fraction, ...)."""
+        n = sum(p.numel() for p in self.parameters())
+        return {"model_params": n, "model_mb": sum(p.numel() * p.element_size() for p in self.parameters()) / 2**20}
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A model registered in the ``nerfpipe.models`` entry-point group."""
+
+    name: str
+    description: str
+    config: type
+    """Config dataclass with ``setup(scene_info: SceneInfo) -> Model``."""

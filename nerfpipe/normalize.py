@@ -1,0 +1,92 @@
+"""World normalisation and scene bounds shared by all adapters.
+
+Real captures (COLMAP, instant-ngp, nerfstudio) come in arbitrary position, orientation and
+scale. :func:`auto_normalization` computes the :class:`~nerfpipe.scene.Similarity` that puts the
+scene centre at the origin, the average camera "up" on +z, and the cameras at a mean distance
+of :data:`TARGET_CAMERA_DISTANCE` from the centre (the distance of the Blender synthetic scenes,
+so that default bounds and step sizes carry over). Synthetic Blender scenes keep their frame.
+"""
+
+import math
+
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.scene import Similarity
+from nerfpipe.typing import Float, Tensor
+
+TARGET_CAMERA_DISTANCE = 4.0
+
+
+def focus_point(cameras: Cameras) -> Float[Tensor, "3"]:
+    """The point closest (least squares) to all optical axes."""
+    c = cameras.centers.double().reshape(-1, 3)
+    d = torch.nn.functional.normalize(cameras.forward.double().reshape(-1, 3), dim=-1)
+    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]
+    a = proj.sum(0)
+    b = (proj @ c[:, :, None]).sum(0)[:, 0]
+    if torch.linalg.matrix_rank(a) < 3:  # all axes parallel: fall back to the centroid
+        return c.mean(0)
+    return torch.linalg.solve(a, b)
+
+
+def rotation_to_z(up: Float[Tensor, "3"]) -> Float[Tensor, "3 3"]:
+    """Rotation that maps the unit vector ``up`` onto +z (Rodrigues)."""
+    up = up.double() / up.double().norm()
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    v = torch.linalg.cross(up, z)
+    c = float(up @ z)
+    if v.norm() < 1e-12:
+        return torch.eye(3, dtype=torch.float64) if c > 0 else torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    vx = torch.tensor([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + vx + vx @ vx * (1 / (1 + c))
+
+
+def auto_normalization(cameras: Cameras, center: "Float[Tensor, '3'] | None" = None) -> Similarity:
+    """Similarity that centres the scene, turns the mean camera up (-y) to +z, and scales."""
+    center = focus_point(cameras) if center is None else center.double()
+    up = -cameras.world_from_cam[..., :3, 1].double().reshape(-1, 3).mean(0)
+    rot = rotation_to_z(up) if up.norm() > 1e-6 else torch.eye(3, dtype=torch.float64)
+    dist = (cameras.centers.double().reshape(-1, 3) - center).norm(dim=-1).mean()
+    scale = TARGET_CAMERA_DISTANCE / float(dist) if float(dist) > 0 else 1.0
+    return Similarity(rot, -scale * (rot @ center), scale)
+
+
+def bounds_from_cameras(cameras: Cameras, center: "Float[Tensor, '3'] | None" = None):
+    """Near/far and a cube around the look-at point, from the cameras alone.
+
+    The cube's half-size is what the mean camera sees at the look-at distance
+    (``distance * tan(half fov)``): for the Blender lego this gives about 1.45.
+
+    Returns:
+        (near, far, aabb ``[2, 3]``)
+    """
+    center = focus_point(cameras) if center is None else center.double()
+    dist = (cameras.centers.double().reshape(-1, 3) - center).norm(dim=-1)
+    half_fov = torch.atan(0.5 * torch.minimum(cameras.width / cameras.fx, cameras.height / cameras.fy).double())
+    half = float((dist * torch.tan(half_fov.reshape(-1))).mean())
+    radius = math.sqrt(3) * half
+    near = max(0.05 * float(dist.min()), float(dist.min()) - radius)
+    far = float(dist.max()) + radius
+    aabb = torch.stack([center - half, center + half]).float()
+    return near, far, aabb
+
+
+def bounds_from_points(cameras: Cameras, xyz: Float[Tensor, "num_points 3"], lo: float = 0.02, hi: float = 0.98):
+    """Near/far from the depths of sparse points, and a box from their robust extent.
+
+    Returns:
+        (near, far, aabb ``[2, 3]``)
+    """
+    xyz = xyz.double()
+    box_lo = torch.quantile(xyz, lo, dim=0)
+    box_hi = torch.quantile(xyz, hi, dim=0)
+    pad = 0.1 * (box_hi - box_lo)
+    aabb = torch.stack([box_lo - pad, box_hi + pad])
+    cfw = cameras.cam_from_world.double().reshape(-1, 4, 4)
+    sub = xyz[torch.randperm(len(xyz))[:20000]] if len(xyz) > 20000 else xyz
+    z = (cfw[:, None, :3, :3] @ sub[None, :, :, None])[..., 0, 2] + cfw[:, None, 2, 3]
+    z = z[z > 0]
+    near = 0.5 * float(torch.quantile(z, 0.01)) if len(z) else 0.05
+    far = 1.5 * float(torch.quantile(z, 0.99)) if len(z) else 10.0
+    return near, far, aabb.float()

@@ -1,0 +1,165 @@
+"""The scene record every data adapter returns: :class:`SceneData`.
+
+Glossary:
+    input frame   the world coordinates of the files on disk
+    world frame   nerfpipe's normalised world: ``x_world = scale * R @ x_input + t``
+                  (:class:`Similarity` ``world_from_input``); exports map back with its inverse
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.typing import Float, Tensor
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class Similarity:
+    """A similarity transform ``x -> scale * rotation @ x + translation``."""
+
+    rotation: Float[Tensor, "3 3"] = field(default_factory=lambda: torch.eye(3, dtype=torch.float64))
+    translation: Float[Tensor, "3"] = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    scale: float = 1.0
+
+    def apply_points(self, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+        r, t = self.rotation.to(x), self.translation.to(x)
+        return self.scale * (x @ r.T) + t
+
+    def apply_world_from_cam(self, m: Float[Tensor, "*bs 4 4"]) -> Float[Tensor, "*bs 4 4"]:
+        """Map camera-to-world rigid transforms into the new frame (rotation stays orthonormal)."""
+        out = m.clone()
+        r = self.rotation.to(m)
+        out[..., :3, :3] = r @ m[..., :3, :3]
+        out[..., :3, 3] = self.apply_points(m[..., :3, 3])
+        return out
+
+    def inverse(self) -> "Similarity":
+        r_inv = self.rotation.T
+        return Similarity(r_inv, -(r_inv @ self.translation) / self.scale, 1.0 / self.scale)
+
+    def compose(self, first: "Similarity") -> "Similarity":
+        """``self ∘ first``: apply ``first`` and then ``self``."""
+        return Similarity(
+            self.rotation @ first.rotation,
+            self.scale * (self.rotation @ first.translation) + self.translation,
+            self.scale * first.scale,
+        )
+
+    def matrix(self) -> Float[Tensor, "4 4"]:
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3] = self.scale * self.rotation.double()
+        m[:3, 3] = self.translation.double()
+        return m
+
+
+@dataclass
+class Points3D:
+    """Sparse 3D points (e.g. from COLMAP) in the world frame."""
+
+    xyz: Float[Tensor, "num_points 3"]
+    rgb: "Tensor"  # uint8 [num_points, 3]
+    error: "Tensor | None" = None
+    """Per-point reprojection error in pixels, when the source has it."""
+
+
+class ImageSet:
+    """Images of a scene, loaded lazily and kept uint8 until used.
+
+    Either ``paths`` (one per camera; ``None`` for poses without an image, such as a
+    test split of poses only) or an in-memory ``array`` ``[N, H, W, C]`` uint8.
+    """
+
+    def __init__(self, paths: "list[Path | None] | None" = None, array: "np.ndarray | None" = None) -> None:
+        if (paths is None) == (array is None):
+            raise ValueError("give exactly one of paths or array")
+        self.paths = paths
+        self.array = array
+
+    def __len__(self) -> int:
+        return len(self.paths) if self.paths is not None else len(self.array)
+
+    def has(self, i: int) -> bool:
+        return self.array is not None or self.paths[i] is not None
+
+    def name(self, i: int) -> str:
+        return str(self.paths[i]) if self.paths is not None else f"image[{i}]"
+
+    def load(self, i: int) -> np.ndarray:
+        """Image ``i`` as uint8 ``[H, W, C]`` (C = 3 or 4)."""
+        if self.array is not None:
+            return self.array[i]
+        path = self.paths[i]
+        if path is None:
+            raise NerfpipeError(f"camera {i} has no image (poses only)")
+        return read_image_uint8(path)
+
+
+def read_image_uint8(path: Path) -> np.ndarray:
+    """Read an image file as uint8 ``[H, W, 3|4]``; 16-bit is scaled, grey is expanded."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if not path.is_file():
+        raise NerfpipeError("image file is missing", path)
+    try:
+        img = np.asarray(iio.imread(path))
+    except Exception as exc:  # imageio raises many types for corrupt files
+        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {exc})", path) from None
+    if img.dtype == np.uint16:
+        img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise NerfpipeError(f"unsupported image dtype {img.dtype}", path)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4):
+        raise NerfpipeError(f"unsupported image shape {img.shape}", path)
+    if img.shape[-1] == 1:
+        img = np.repeat(img, 3, axis=-1)
+    elif img.shape[-1] == 2:  # grey + alpha
+        img = np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
+    return img
+
+
+@dataclass
+class SceneData:
+    """What every data adapter returns, in nerfpipe's single camera convention."""
+
+    cameras: Cameras
+    """All cameras ``[N]`` (OpenCV convention, normalised world frame)."""
+    images: ImageSet
+    """One entry per camera; test cameras may have no image."""
+    splits: "dict[str, np.ndarray]"
+    """Camera indices per split: ``train``, ``val``, ``test`` (int64 arrays, possibly empty)."""
+    near: float
+    """Near bound along rays, in world units."""
+    far: float
+    """Far bound along rays, in world units."""
+    aabb: Float[Tensor, "2 3"]
+    """Axis-aligned scene box ``[min, max]`` in world units."""
+    world_from_input: Similarity
+    """The normalisation applied to the input frame; exports map back with its inverse."""
+    source: Path
+    """The file or folder the scene was read from."""
+    format: str
+    """Adapter name, e.g. ``"cs180-npz"``, ``"blender"``, ``"colmap"``."""
+    points: "Points3D | None" = None
+    """Sparse 3D points with colours, if the source has them."""
+    has_alpha: bool = False
+    """Whether the images carry an alpha channel (RGBA input)."""
+    camera_models: "list[str]" = field(default_factory=list)
+    """The source's camera model name per camera (e.g. ``PINHOLE``, ``OPENCV``)."""
+    meta: dict = field(default_factory=dict)
+    """Format-specific extras (e.g. ``aabb_scale``, ``applied_transform``)."""
+
+    def split_cameras(self, split: str) -> Cameras:
+        return self.cameras[torch.as_tensor(self.splits[split], dtype=torch.long)]
+
+    def __post_init__(self) -> None:
+        for name in SPLITS:
+            self.splits.setdefault(name, np.zeros(0, dtype=np.int64))

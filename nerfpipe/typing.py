@@ -1,0 +1,20 @@
+"""Axis vocabulary for tensor shapes in type hints (STYLE habit 2).
+
+Every shape annotation in nerfpipe uses these axis names:
+
+* ``*bs``          any leading batch shape (cameras, rays, pixels, ...)
+* ``num_cams``     number of cameras in a :class:`~nerfpipe.cameras.Cameras` batch
+* ``num_rays``     number of rays in a flat batch
+* ``num_samples``  samples along each ray
+* ``num_points``   points in a flat batch (3D points, pixels)
+* ``H W``          image height and width in pixels
+* ``C``            channels (3 for RGB, 4 for RGBA)
+
+Shapes are checked at runtime in the test suite by
+``pytest --jaxtyping-packages=nerfpipe,data_adapters,beartype.beartype``.
+"""
+
+from jaxtyping import Bool, Float, Int, UInt8, Shaped
+from torch import Tensor
+
+__all__ = ["Bool", "Float", "Int", "UInt8", "Shaped", "Tensor"]

@@ -1,0 +1,1 @@
+"""Built-in pipeline stages (registered through the ``nerfpipe.stages`` entry-point group)."""
