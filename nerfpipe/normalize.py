@@ -85,7 +85,7 @@ def bounds_from_points(cameras: Cameras, xyz: Float[Tensor, "num_points 3"], lo:
     aabb = torch.stack([box_lo - pad, box_hi + pad])
     cfw = cameras.cam_from_world.double().reshape(-1, 4, 4)
     sub = xyz[torch.randperm(len(xyz))[:20000]] if len(xyz) > 20000 else xyz
-    z = (cfw[:, None, :3, :3] @ sub[None, :, :, None])[..., 0, 2] + cfw[:, None, 2, 3]
+    z = (cfw[:, None, 2:3, :3] @ sub[None, :, :, None])[..., 0, 0] + cfw[:, None, 2, 3]
     z = z[z > 0]
     near = 0.5 * float(torch.quantile(z, 0.01)) if len(z) else 0.05
     far = 1.5 * float(torch.quantile(z, 0.99)) if len(z) else 10.0

@@ -72,32 +72,46 @@ class ImageSet:
     """Images of a scene, loaded lazily and kept uint8 until used.
 
     Either ``paths`` (one per camera; ``None`` for poses without an image, such as a
-    test split of poses only) or an in-memory ``array`` ``[N, H, W, C]`` uint8.
+    test split of poses only) or an in-memory ``array`` ``[M, H, W, C]`` uint8. With an
+    array, ``has_image`` (bool ``[N]``) marks the cameras that have an image; the array then
+    holds only those, in camera order (``M = has_image.sum()``). Without it, ``M = N``.
     """
 
-    def __init__(self, paths: "list[Path | None] | None" = None, array: "np.ndarray | None" = None) -> None:
+    def __init__(
+        self,
+        paths: "list[Path | None] | None" = None,
+        array: "np.ndarray | None" = None,
+        has_image: "np.ndarray | None" = None,
+    ) -> None:
         if (paths is None) == (array is None):
             raise ValueError("give exactly one of paths or array")
+        if has_image is not None and (array is None or int(np.sum(has_image)) != len(array)):
+            raise ValueError("has_image needs an array with one row per True entry")
         self.paths = paths
         self.array = array
+        self._rows = None if has_image is None else np.where(has_image, np.cumsum(has_image) - 1, -1)
+        """Array row of each camera, -1 for none (``None``: row i is camera i)."""
 
     def __len__(self) -> int:
-        return len(self.paths) if self.paths is not None else len(self.array)
+        if self.paths is not None:
+            return len(self.paths)
+        return len(self.array) if self._rows is None else len(self._rows)
 
     def has(self, i: int) -> bool:
-        return self.array is not None or self.paths[i] is not None
+        if self.array is not None:
+            return self._rows is None or bool(self._rows[i] >= 0)
+        return self.paths[i] is not None
 
     def name(self, i: int) -> str:
         return str(self.paths[i]) if self.paths is not None else f"image[{i}]"
 
     def load(self, i: int) -> np.ndarray:
         """Image ``i`` as uint8 ``[H, W, C]`` (C = 3 or 4)."""
-        if self.array is not None:
-            return self.array[i]
-        path = self.paths[i]
-        if path is None:
+        if not self.has(i):
             raise NerfpipeError(f"camera {i} has no image (poses only)")
-        return read_image_uint8(path)
+        if self.array is not None:
+            return self.array[i if self._rows is None else self._rows[i]]
+        return read_image_uint8(self.paths[i])
 
 
 def read_image_uint8(path: Path) -> np.ndarray:
@@ -163,3 +177,19 @@ class SceneData:
     def __post_init__(self) -> None:
         for name in SPLITS:
             self.splits.setdefault(name, np.zeros(0, dtype=np.int64))
+
+
+def holdout_split(n: int, every: int = 8) -> "dict[str, np.ndarray]":
+    """The shared train/val rule for captures without their own splits (COLMAP, single-file transforms).
+
+    Cameras are taken in the adapter's stable order (sorted by image name); every ``every``-th
+    one, starting with the first (``i % every == 0``), is ``val``, the rest ``train``, as in the
+    LLFF/mip-NeRF convention. ``test`` is empty; a single camera is kept for training.
+
+    Example:
+        >>> holdout_split(10, every=4)["val"].tolist()
+        [0, 4, 8]
+    """
+    idx = np.arange(n, dtype=np.int64)
+    val = (idx % every == 0) & (n > 1)
+    return {"train": idx[~val], "val": idx[val], "test": np.zeros(0, dtype=np.int64)}

@@ -1,0 +1,218 @@
+"""COLMAP sparse models (binary or text) plus an ``images/`` folder, read with pycolmap.
+
+Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``, or the model
+files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
+Images are looked up as ``<root>/images/<image name>``.
+
+Only registered images become cameras, sorted by image name; every 8th of them is ``val``
+(:func:`nerfpipe.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
+(world-to-camera poses, OpenCV axes, top-left pixel centre at (0.5, 0.5)), so poses are only
+inverted and then normalised (:func:`nerfpipe.normalize.auto_normalization`).
+
+``meta`` keeps what ``nerfpipe check`` needs to reproject COLMAP's own points:
+``observations`` (``cam_idx`` int32 ``[M]``, ``xy`` float64 ``[M, 2]`` pixel coordinates,
+``point_idx`` int32 ``[M]`` into :attr:`SceneData.points`) and ``colmap_mean_reprojection_error``.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerfpipe.cameras import Cameras, invert_rigid
+from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.functional.distortion import Distortion
+from nerfpipe.normalize import auto_normalization, bounds_from_points
+from nerfpipe.registry import AdapterSpec
+from nerfpipe.scene import ImageSet, Points3D, SceneData, holdout_split
+
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def _param_map(model: str, p: "list[float]") -> "tuple[float, float, float, float, Distortion, list[float]] | None":
+    """COLMAP params -> (fx, fy, cx, cy, distortion code, 4 distortion params); None if unsupported."""
+    if model == "SIMPLE_PINHOLE":
+        return p[0], p[0], p[1], p[2], Distortion.NONE, [0.0] * 4
+    if model == "PINHOLE":
+        return p[0], p[1], p[2], p[3], Distortion.NONE, [0.0] * 4
+    if model == "SIMPLE_RADIAL":
+        return p[0], p[0], p[1], p[2], Distortion.OPENCV, [p[3], 0.0, 0.0, 0.0]
+    if model == "RADIAL":
+        return p[0], p[0], p[1], p[2], Distortion.OPENCV, [p[3], p[4], 0.0, 0.0]
+    if model == "OPENCV":
+        return p[0], p[1], p[2], p[3], Distortion.OPENCV, list(p[4:8])
+    if model == "OPENCV_FISHEYE":
+        return p[0], p[1], p[2], p[3], Distortion.FISHEYE, list(p[4:8])
+    return None
+
+
+SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+
+
+def _model_file(model_dir: Path, stem: str) -> "Path | None":
+    for ext in (".bin", ".txt"):
+        if (model_dir / f"{stem}{ext}").is_file():
+            return model_dir / f"{stem}{ext}"
+    return None
+
+
+def find_model_dir(root: Path) -> "Path | None":
+    """The folder holding the model files under ``root``, or None."""
+    for cand in (root / "sparse" / "0", root / "sparse", root):
+        if cand.is_dir() and all(_model_file(cand, s) is not None for s in MODEL_FILES):
+            return cand
+    return None
+
+
+def detect(path: Path) -> int:
+    """A folder with a COLMAP model is a strong match; anything else is not COLMAP."""
+    path = Path(path)
+    if not path.is_dir():
+        return 0
+    return 20 if find_model_dir(path) is not None else 0
+
+
+def _open(model_dir: Path):
+    pycolmap = require("pycolmap", "colmap")
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises RuntimeError/ValueError for unreadable models
+        raise NerfpipeError(f"cannot read COLMAP model ({type(exc).__name__}: {exc})", model_dir) from None
+
+
+def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
+    model = cam.model.name
+    mapped = _param_map(model, [float(v) for v in cam.params])
+    if mapped is None:
+        raise NerfpipeError(
+            f"camera {cam.camera_id} uses COLMAP model {model}, which nerfpipe does not support "
+            f"(supported: {', '.join(SUPPORTED_MODELS)}); undistort the images with 'colmap image_undistorter'",
+            cameras_file,
+        )
+    return mapped, model
+
+
+def _image_size(path: Path) -> "tuple[int, int]":
+    """(width, height) from the file header only."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except Exception as exc:  # PIL raises several types for unreadable files
+        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", path) from None
+
+
+def _check_image(path: Path, cam) -> None:
+    if not path.is_file():
+        raise NerfpipeError("image file is missing (registered in the COLMAP model)", path)
+    w, h = _image_size(path)
+    if (w, h) != (cam.width, cam.height):
+        raise NerfpipeError(
+            f"image is {w}x{h} but its COLMAP camera {cam.camera_id} is {cam.width}x{cam.height}", path
+        )
+
+
+def _observations(rec, images) -> "dict[str, np.ndarray]":
+    """Every (camera index, pixel, 3D point index) triple of the registered images."""
+    point_ids = np.array(sorted(rec.points3D), dtype=np.int64)
+    cam_idx, xy, pid = [], [], []
+    for i, im in enumerate(images):
+        obs = im.get_observation_points2D()
+        cam_idx.append(np.full(len(obs), i, dtype=np.int32))
+        xy.append(np.array([p.xy for p in obs], dtype=np.float64).reshape(-1, 2))
+        pid.append(np.array([p.point3D_id for p in obs], dtype=np.int64))
+    pid = np.concatenate(pid)
+    return {
+        "cam_idx": np.concatenate(cam_idx),
+        "xy": np.concatenate(xy),
+        "point_idx": np.searchsorted(point_ids, pid).astype(np.int32),
+    }
+
+
+def _points(rec) -> "Points3D | None":
+    if rec.num_points3D() == 0:
+        return None
+    pts = [rec.points3D[i] for i in sorted(rec.points3D)]
+    return Points3D(
+        xyz=torch.tensor(np.array([p.xyz for p in pts]), dtype=torch.float64),
+        rgb=torch.tensor(np.array([p.color for p in pts]), dtype=torch.uint8),
+        error=torch.tensor(np.array([p.error for p in pts]), dtype=torch.float64),
+    )
+
+
+def _cameras(rec, images, cameras_file: Path, images_file: Path) -> "tuple[Cameras, list[str]]":
+    """Cameras in the input frame (float64) and the COLMAP model name per camera."""
+    rows, models, w2c = [], [], []
+    for im in images:
+        cam = rec.camera(im.camera_id)
+        mapped, model = _convert_camera(cam, cameras_file)
+        rows.append((*mapped, cam.width, cam.height))
+        models.append(model)
+        cfw = np.eye(4)
+        cfw[:3] = im.cam_from_world().matrix()
+        if not np.isfinite(cfw).all():
+            raise NerfpipeError(f"image '{im.name}' has a non-finite pose", images_file)
+        w2c.append(cfw)
+    world_from_cam = invert_rigid(torch.tensor(np.stack(w2c), dtype=torch.float64))
+    fx, fy, cx, cy, code, params, width, height = zip(*rows)
+    cams = Cameras.create(
+        world_from_cam, fx, fy, cx, cy, width, height,
+        torch.tensor([int(c) for c in code]), torch.tensor(params, dtype=torch.float64), dtype=torch.float64,
+    )
+    return cams, models
+
+
+def read(path: Path) -> SceneData:
+    """Read a COLMAP scene folder; see the module docstring for the layout."""
+    root = Path(path)
+    model_dir = find_model_dir(root) if root.is_dir() else None
+    if model_dir is None:
+        raise NerfpipeError("no COLMAP model (cameras/images/points3D .bin or .txt) in sparse/0, sparse or the folder", root)
+    cameras_file, images_file = _model_file(model_dir, "cameras"), _model_file(model_dir, "images")
+    rec = _open(model_dir)
+    images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
+    if not images:
+        raise NerfpipeError("COLMAP model has no registered images", images_file)
+    cams, models = _cameras(rec, images, cameras_file, images_file)
+    paths = [root / "images" / im.name for im in images]
+    for p, im in zip(paths, images):
+        _check_image(p, rec.camera(im.camera_id))
+    return _assemble(root, rec, images, cams, models, paths)
+
+
+def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
+    """Normalise cameras and points into nerfpipe's world and build the record."""
+    norm = auto_normalization(cams)
+    cams.world_from_cam = norm.apply_world_from_cam(cams.world_from_cam)
+    points = _points(rec)
+    if points is not None:
+        points.xyz = norm.apply_points(points.xyz).float()
+        near, far, aabb = bounds_from_points(cams, points.xyz)
+    else:
+        from nerfpipe.normalize import bounds_from_cameras
+
+        near, far, aabb = bounds_from_cameras(cams)
+    meta = {"observations": _observations(rec, images), "colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
+    return SceneData(
+        cameras=cams.to(dtype=torch.float32),
+        images=ImageSet(paths=paths),
+        splits=holdout_split(len(images)),
+        near=near,
+        far=far,
+        aabb=aabb,
+        world_from_input=norm,
+        source=root,
+        format="colmap",
+        points=points,
+        camera_models=models,
+        meta=meta,
+    )
+
+
+ADAPTER = AdapterSpec(
+    name="colmap",
+    description="COLMAP sparse model (sparse/0, binary or text) with an images/ folder",
+    detect=detect,
+    read=read,
+)
