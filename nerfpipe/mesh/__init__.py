@@ -11,6 +11,6 @@ Glossary:
     h             grid spacing (voxel size) of the extraction grid, in world units
 """
 
-from nerfpipe.mesh.trimesh_data import TriangleMesh
+from nerfpipe.mesh.container import TriangleMesh
 
 __all__ = ["TriangleMesh"]
