@@ -11,7 +11,8 @@ inverted and then normalised (:func:`nerfpipe.normalize.auto_normalization`).
 
 ``meta`` keeps what ``nerfpipe check`` needs to reproject COLMAP's own points:
 ``observations`` (``cam_idx`` int32 ``[M]``, ``xy`` float64 ``[M, 2]`` pixel coordinates,
-``point_idx`` int32 ``[M]`` into :attr:`SceneData.points`) and ``colmap_mean_reprojection_error``.
+``point_idx`` int32 ``[M]`` into :attr:`SceneData.points`) and ``colmap_mean_reprojection_error``
+(pycolmap's figure, recomputed on load: the mean over points of each track's mean error).
 """
 
 from pathlib import Path
@@ -73,6 +74,10 @@ def detect(path: Path) -> int:
 
 
 def _open(model_dir: Path):
+    # Load the system zlib before pycolmap's bundled one: with pycolmap first, PNG writing in
+    # the same process aborts (free(): invalid pointer in deflateEnd, pycolmap 4.2.1 + Pillow).
+    import zlib  # noqa: F401
+
     pycolmap = require("pycolmap", "colmap")
     try:
         return pycolmap.Reconstruction(str(model_dir))
@@ -168,7 +173,9 @@ def read(path: Path) -> SceneData:
     root = Path(path)
     model_dir = find_model_dir(root) if root.is_dir() else None
     if model_dir is None:
-        raise NerfpipeError("no COLMAP model (cameras/images/points3D .bin or .txt) in sparse/0, sparse or the folder", root)
+        raise NerfpipeError(
+            "no COLMAP model (cameras/images/points3D .bin or .txt) in sparse/0, sparse or the folder", root
+        )
     cameras_file, images_file = _model_file(model_dir, "cameras"), _model_file(model_dir, "images")
     rec = _open(model_dir)
     images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
@@ -193,7 +200,11 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
         from nerfpipe.normalize import bounds_from_cameras
 
         near, far, aabb = bounds_from_cameras(cams)
-    meta = {"observations": _observations(rec, images), "colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
+    rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale
+    meta = {
+        "observations": _observations(rec, images),
+        "colmap_mean_reprojection_error": rec.compute_mean_reprojection_error(),
+    }
     return SceneData(
         cameras=cams.to(dtype=torch.float32),
         images=ImageSet(paths=paths),

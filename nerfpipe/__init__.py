@@ -10,6 +10,7 @@ Layers (lower never imports upper):
 from nerfpipe.cameras import Cameras, invert_rigid, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.functional.distortion import Distortion
+from nerfpipe.functional.volrend import volrend
 from nerfpipe.rays import RayBundle, camera_rays, generate_rays, pixel_centers
 from nerfpipe.scene import ImageSet, Points3D, SceneData, Similarity
 
@@ -29,4 +30,5 @@ __all__ = [
     "invert_rigid",
     "opengl_to_opencv",
     "pixel_centers",
+    "volrend",
 ]

@@ -16,11 +16,19 @@ from nerfpipe.errors import NerfpipeError
 
 
 def _commands() -> dict:
-    from nerfpipe.commands import check, info
+    from nerfpipe.commands import check, demo, info, run, synth
 
     return {
         "info": info.info,
+        "train": __import__("nerfpipe.commands.train", fromlist=["train"]).train,
+        "render": __import__("nerfpipe.commands.render", fromlist=["render"]).render,
+        "fit2d": __import__("nerfpipe.commands.fit2d", fromlist=["fit2d"]).fit2d,
         "check": check.check,
+        "synth": synth.synth,
+        "demo": demo.demo,
+        "run": run.run,
+        "stage": run.stage,
+        "stages": run.list_stages,
     }
 
 

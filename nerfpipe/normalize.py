@@ -84,8 +84,9 @@ def bounds_from_points(cameras: Cameras, xyz: Float[Tensor, "num_points 3"], lo:
     pad = 0.1 * (box_hi - box_lo)
     aabb = torch.stack([box_lo - pad, box_hi + pad])
     cfw = cameras.cam_from_world.double().reshape(-1, 4, 4)
-    sub = xyz[torch.randperm(len(xyz))[:20000]] if len(xyz) > 20000 else xyz
-    z = (cfw[:, None, 2:3, :3] @ sub[None, :, :, None])[..., 0, 0] + cfw[:, None, 2, 3]
+    gen = torch.Generator().manual_seed(0)  # reproducible bounds
+    sub = xyz[torch.randperm(len(xyz), generator=gen)[:20000]] if len(xyz) > 20000 else xyz
+    z = cfw[:, 2, :3] @ sub.T + cfw[:, 2, 3:4]  # camera-z depth of every point in every camera
     z = z[z > 0]
     near = 0.5 * float(torch.quantile(z, 0.01)) if len(z) else 0.05
     far = 1.5 * float(torch.quantile(z, 0.99)) if len(z) else 10.0

@@ -13,7 +13,8 @@ import importlib.metadata
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 T = TypeVar("T")
 

@@ -80,13 +80,14 @@ class GridEncoder(nn.Module):
 
     def forward(self, x: Float[Tensor, "*bs D"]) -> Float[Tensor, "*bs E"]:
         batch_shape = x.shape[:-1]
-        idx, w = self.corners(x.reshape(-1, self.in_dim))  # [N, levels, 2^D]
-        n_corners = idx.shape[-1]
-        feats = F.embedding_bag(
-            idx.reshape(-1, n_corners), self.table, per_sample_weights=w.reshape(-1, n_corners).to(self.table.dtype),
-            mode="sum",
-        )
-        return feats.reshape(*batch_shape, self.out_dim)
+        idx, w = self.corners(x.reshape(-1, self.in_dim))
+        return self.interpolate(idx, w).reshape(*batch_shape, self.out_dim)
+
+    def interpolate(self, idx: Int[Tensor, "N levels C"], w: Float[Tensor, "N levels C"]) -> Float[Tensor, "N E"]:
+        """Features from precomputed :meth:`corners` (cache them when the points never move)."""
+        n, levels, n_corners = idx.shape
+        out = _WeightedGather.apply(self.table, idx.reshape(-1, n_corners), w.reshape(-1, n_corners).to(self.table))
+        return out.reshape(n, levels * self.config.features_per_level)
 
     def corners(self, x: Float[Tensor, "N D"]) -> tuple[Int[Tensor, "N levels C"], Float[Tensor, "N levels C"]]:
         """Table rows and (multi)linear weights of the ``C = 2^D`` cell corners at every level."""
@@ -145,6 +146,30 @@ class GridEncoder(nn.Module):
             "features_per_level": self.config.features_per_level,
             "table_rows": int(self.size.sum()),
         }
+
+
+class _WeightedGather(torch.autograd.Function):
+    """``out[b] = sum_c w[b, c] * table[idx[b, c]]``: embedding_bag forward, index_add backward.
+
+    ``embedding_bag``'s own backward sorts the indices and is several times slower on CPU than a
+    plain ``index_add_`` into a zero gradient table.
+    """
+
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
+        ctx.save_for_backward(table, idx, w)
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor) -> "tuple[Tensor | None, None, Tensor | None]":
+        table, idx, w = ctx.saved_tensors
+        grad_table = grad_w = None
+        if ctx.needs_input_grad[0]:
+            contrib = (w[:, :, None] * grad_out[:, None, :]).reshape(-1, table.shape[1])
+            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib)
+        if ctx.needs_input_grad[2]:
+            grad_w = (table[idx] * grad_out[:, None, :]).sum(-1)
+        return grad_table, None, grad_w
 
 
 def _corner_bits(dim: int) -> Int[Tensor, "C D"]:

@@ -7,7 +7,7 @@ entry-point group ``nerfpipe.models`` as :class:`ModelSpec` objects.
 
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn

@@ -1,0 +1,82 @@
+"""``nerfpipe fit2d``: fit a neural field to one 2D image (course recipe or fast grid), or sweep L × lr."""
+
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from nerfpipe.errors import NerfpipeError
+
+
+def fit2d(
+    image: tyro.conf.Positional[Optional[Path]] = None,
+    out: Path = Path("fit2d_out"),
+    preset: Literal["course", "fast"] = "course",
+    iterations: Optional[int] = None,
+    lr: Optional[float] = None,
+    lr_final_factor: Optional[float] = None,
+    batch_size: Optional[int] = None,
+    num_frequencies: Optional[int] = None,
+    hidden_width: Optional[int] = None,
+    num_layers: Optional[int] = None,
+    grid_levels: Optional[int] = None,
+    grid_features: Optional[int] = None,
+    grid_max_resolution: Optional[int] = None,
+    grid_log2_hashmap_size: Optional[int] = None,
+    max_seconds: Optional[float] = None,
+    num_evals: Optional[int] = None,
+    seed: int = 0,
+    sweep: bool = False,
+    sweep_l: "list[int]" = [4, 10, 20, 35],
+    sweep_lr: "list[float]" = [1e-3, 1e-2],
+    max_pixels: int = 2048 * 2048,
+    threads: int = 2,
+) -> int:
+    """Fit a coordinate network (x, y) -> RGB to an image and write plots and metrics to OUT.
+
+    Args:
+        image: image file; default: scikit-image's astronaut photograph.
+        out: output folder (psnr.png, progress.png, final.png, metrics.json; sweep.* with --sweep).
+        preset: ``course`` (positional encoding L=10, 4×256 MLP, 10k pixels/step) or ``fast``
+            (multiresolution grid + tiny MLP, all pixels/step). Flags below override the preset.
+        iterations: Adam steps.
+        lr: Adam learning rate.
+        lr_final_factor: decay the learning rate exponentially to lr × this by the end.
+        batch_size: random pixels per step; 0 = every pixel.
+        num_frequencies: L of the positional encoding (phases are exact at any L).
+        hidden_width: MLP hidden width.
+        num_layers: number of linear layers.
+        grid_levels: grid encoder levels.
+        grid_features: grid features per level.
+        grid_max_resolution: finest grid resolution (default: the image's larger side).
+        grid_log2_hashmap_size: levels above 2^this vertices are hashed.
+        max_seconds: stop after this much training time.
+        num_evals: full-image PSNR evaluations over the run.
+        seed: random seed.
+        sweep: fit every (L, lr) of --sweep-l × --sweep-lr with the positional encoding.
+        sweep_l: values of L for --sweep.
+        sweep_lr: learning rates for --sweep.
+        max_pixels: larger images are downscaled (with a warning) to at most this many pixels.
+        threads: torch CPU threads.
+    """
+    import torch
+
+    from nerfpipe.image_field import fit2d_run
+    from nerfpipe.image_field.images import load_target
+
+    torch.set_num_threads(max(1, threads))
+    target = load_target(image, max_pixels)
+    for note in target.notes:
+        fit2d_run.console().print(f"[yellow]nerfpipe: warning:[/] {target.source}: {note}")
+    overrides = {k: v for k, v in locals().items() if k in fit2d_run.OVERRIDES and v is not None}
+    cfg = fit2d_run.configure(preset, overrides, target.pixels.shape)
+    if sweep:
+        if preset != "course":
+            raise NerfpipeError("--sweep varies L of the positional encoding: use it with --preset course")
+        fit2d_run.run_sweep(target, cfg, sweep_l, sweep_lr, out)
+    else:
+        fit2d_run.run_single(target, cfg, preset, out)
+    return 0
+
+
+__all__ = ["fit2d"]

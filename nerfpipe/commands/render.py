@@ -1,0 +1,69 @@
+"""``nerfpipe render``: novel views of a trained run (test poses or a generated orbit)."""
+
+from pathlib import Path
+
+from tyro.conf import Positional
+
+
+def render(
+    run_dir: Positional[Path],
+    path: str = "test",
+    depth: bool = False,
+    background: "str | None" = None,
+    size: "str | None" = None,
+    frames: int = 60,
+    chunk: int = 4096,
+    device: str = "cpu",
+) -> int:
+    """Render a camera path of a trained run into RUN_DIR/renders/.
+
+    Args:
+        run_dir: a run folder written by nerfpipe train.
+        path: test (the dataset's test poses; orbit when it has none) or orbit (around the scene centre).
+        depth: also write depth_<path>.gif (turbo colour map, mapping printed and saved).
+        background: black | white (default: the run's evaluation background).
+        size: output size WxH, e.g. 800x800 (default: the cameras' own).
+        frames: number of frames.
+        chunk: rays per forward pass (bounds memory).
+        device: torch device.
+    """
+    import json
+
+    import torch
+
+    from nerfpipe.artifacts import write_sequence
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.orbit import path_cameras
+    from nerfpipe.pixel_sampler import BACKGROUNDS, background_colors
+    from nerfpipe.render import render_cameras, resize_cameras
+    from nerfpipe.runs import load_run
+    from nerfpipe.trainer import backgrounds
+
+    if path not in ("test", "orbit"):
+        raise NerfpipeError(f"unknown --path '{path}' (test or orbit)")
+    if background is not None and background not in BACKGROUNDS:
+        raise NerfpipeError(f"unknown --background '{background}' ({' or '.join(BACKGROUNDS)})")
+    scene, model, cfg = load_run(Path(run_dir), device)
+    cams = path_cameras(scene, path, frames)
+    if size is not None:
+        w, h = _parse_size(size)
+        cams = resize_cameras(cams, w, h)
+    bg = background or backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1]
+    with torch.no_grad():
+        views = render_cameras(model, cams.to(device), chunk, background_colors(bg, 1)[0])
+    info = write_sequence(views, Path(run_dir) / "renders", path, depth=depth)
+    (Path(run_dir) / "renders" / f"{path}.json").write_text(json.dumps(info, indent=2) + "\n")
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def _parse_size(text: str) -> "tuple[int, int]":
+    from nerfpipe.errors import NerfpipeError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise NerfpipeError(f"--size must be WxH, e.g. 800x800 (got '{text}')") from None
+    if w <= 0 or h <= 0:
+        raise NerfpipeError(f"--size must be positive (got '{text}')")
+    return w, h

@@ -1,0 +1,137 @@
+"""``nerfpipe run``, ``nerfpipe stage`` and ``nerfpipe stages``: the pipeline from the command line."""
+
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+Positional = tyro.conf.Positional
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=False, highlight=False)
+
+
+def _log_to(console) -> None:
+    """Show the stages' INFO log lines through rich (once per process)."""
+    from rich.logging import RichHandler
+
+    logger = logging.getLogger("nerfpipe")
+    if not any(isinstance(h, RichHandler) for h in logger.handlers):
+        logger.addHandler(RichHandler(console=console, show_path=False, show_level=False))
+    logger.setLevel(logging.INFO)
+
+
+def installed_stages(console) -> dict:
+    """Discover stages; broken plugins are printed as one warning line each, not raised."""
+    from nerfpipe.registry import PluginWarning
+    from nerfpipe.stages import stages
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PluginWarning)
+        found = stages()
+    for w in caught:
+        if issubclass(w.category, PluginWarning):
+            console.print(f"[yellow]warning:[/] {w.message}")
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return found
+
+
+def _summary_table(result):
+    from rich.table import Table
+
+    table = Table(title=f"nerfpipe run: {result.run_dir}")
+    for col in ("stage", "status", "seconds", "artifacts"):
+        table.add_column(col, justify="right" if col == "seconds" else "left")
+    for rec in result.records:
+        table.add_row(rec.name, rec.status, f"{rec.seconds:.1f}", ", ".join(rec.artifacts))
+    table.add_row("total", "", f"{result.seconds:.1f}", "", end_section=True)
+    return table
+
+
+def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict):
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
+
+    if stages is not None and pipeline is not None:
+        raise NerfpipeError("give --stages or --pipeline, not both")
+    if pipeline is not None:
+        return Pipeline.from_toml(pipeline, registry=registry)
+    chain = DEFAULT_CHAIN if stages is None else [s.strip() for s in stages.split(",") if s.strip()]
+    return Pipeline(list(chain), registry=registry)
+
+
+def run(
+    path: Annotated[Path, Positional],
+    stages: "str | None" = None,
+    pipeline: "Path | None" = None,
+    out: "Path | None" = None,
+    time_budget: "float | None" = None,
+    resume: bool = True,
+    device: str = "cpu",
+) -> int:
+    """Run the pipeline on a dataset or a folder of photos, resuming a previous run.
+
+    Args:
+        path: dataset (COLMAP folder, transforms.json, .npz) or a folder of photos (SfM runs first).
+        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,export).
+        pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each.
+        out: run folder (default: ``runs/<input name>``).
+        time_budget: seconds the whole run may take (stages that can, stop early).
+        resume: skip stages that finished before with the same options.
+        device: torch device for the stages that compute.
+    """
+    console = _console()
+    _log_to(console)
+    pipe = _pipeline(stages, pipeline, installed_stages(console))
+    run_dir = out if out is not None else Path("runs") / Path(path).stem
+    console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
+    result = pipe.run(path, run_dir, resume=resume, device=device, time_budget=time_budget)
+    console.print(_summary_table(result))
+    return 0
+
+
+def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]) -> int:
+    """Re-run one stage alone in an existing run folder (with the options it last ran with).
+
+    Args:
+        name: stage name (see ``nerfpipe stages``).
+        run_dir: a run folder made by ``nerfpipe run``.
+    """
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, read_marker, run_stage
+
+    console = _console()
+    _log_to(console)
+    record = Path(run_dir) / RUN_RECORD
+    if not record.is_file():
+        raise NerfpipeError(f"not a run folder (no {RUN_RECORD})", run_dir)
+    source = json.loads(record.read_text()).get("source")
+    pipe = Pipeline([name], registry=installed_stages(console))
+    ctx = pipe.context(run_dir, source)
+    done = read_marker(ctx, name)
+    config = make_config(pipe.specs[0], done["config"]) if done else pipe.configs[name]
+    rec = run_stage(pipe.specs[0], config, ctx)
+    console.print(f"stage {rec.name}: {rec.status} in {rec.seconds:.1f} s -> {', '.join(rec.artifacts) or 'nothing'}")
+    return 0
+
+
+def list_stages() -> int:
+    """List the installed stages (built-in and plugins); broken plugins are reported and skipped."""
+    from rich.table import Table
+
+    console = _console()
+    table = Table(title="installed stages")
+    for col in ("name", "description", "requires", "produces", "module"):
+        table.add_column(col)
+    for name, spec in sorted(installed_stages(console).items()):
+        produces = ", ".join(spec.produces + spec.provides)
+        table.add_row(name, spec.description, ", ".join(spec.requires), produces, spec.run.__module__)
+    console.print(table)
+    return 0

@@ -1,0 +1,104 @@
+"""Validation and end-of-run outputs of a :class:`~nerfpipe.trainer.Trainer`.
+
+Validation renders the first views of the val split (the test split, then train, when the
+scene has no val images) with :func:`~nerfpipe.render.render_cameras`, scaled by ``eval_scale``,
+and scores PSNR and SSIM (kornia.metrics, 11-px Gaussian window) against the ground truth
+composited on the evaluation background.
+"""
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from nerfpipe.errors import require
+from nerfpipe.pixel_sampler import background_colors, composite_pixels
+from nerfpipe.render import render_cameras, resize_cameras, to_uint8
+from nerfpipe.runs import write_json
+
+
+def eval_split(scene) -> str:
+    for split in ("val", "test", "train"):
+        idx = scene.splits.get(split)
+        if idx is not None and len(idx) and all(scene.images.has(int(i)) for i in idx):
+            return split
+    raise ValueError("scene has no images to validate on")
+
+
+def ground_truth(scene, index: int, background, size: "tuple[int, int]") -> torch.Tensor:
+    """Image ``index`` as float ``[H, W, 3]`` on ``background``, area-resized to ``size`` (w, h)."""
+    img = composite_pixels(torch.from_numpy(scene.images.load(index)), background)
+    if (img.shape[1], img.shape[0]) != tuple(size):
+        img = F.interpolate(img.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")[0].permute(1, 2, 0)
+    return img
+
+
+def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
+    """(PSNR, SSIM) of two ``[H, W, 3]`` images in [0, 1]."""
+    kornia = require("kornia", "kornia")
+    a, b = pred.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float().to(pred.device)
+    return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, 11).mean())
+
+
+def validate(trainer, num_views: int) -> "tuple[float, float]":
+    """Mean (PSNR, SSIM) over ``num_views`` val views (0: all); logs it and keeps a snapshot of view 0."""
+    scene, cfg = trainer.scene, trainer.cfg
+    split = eval_split(scene)
+    idx = [int(i) for i in scene.splits[split]]
+    idx = idx[: num_views] if num_views else idx
+    cams = scene.cameras[torch.tensor(idx)]
+    sizes = [(max(1, round(int(w) * cfg.eval_scale)), max(1, round(int(h) * cfg.eval_scale))) for w, h in zip(cams.width, cams.height)]
+    bg = background_colors(trainer.eval_bg, 1)[0]
+    scores = []
+    for i, (w, h) in zip(range(len(idx)), sizes):
+        view = render_cameras(trainer.model, resize_cameras(cams[i : i + 1], w, h).to(cfg.device), cfg.chunk, bg)[0]
+        scores.append(score(view.rgb, ground_truth(scene, idx[i], bg, (w, h))))
+        if i == 0:
+            save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(view.rgb))
+    psnr = sum(s[0] for s in scores) / len(scores)
+    ssim = sum(s[1] for s in scores) / len(scores)
+    trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim])
+    return psnr, ssim
+
+
+def save_snapshot(path: Path, image) -> None:
+    import imageio.v3 as iio
+
+    from nerfpipe.runs import atomic_write_bytes
+
+    atomic_write_bytes(path, lambda p: iio.imwrite(p, image, extension=".png"))
+
+
+def finish(trainer) -> dict:
+    """Final validation, metrics.json, plots and videos; returns the metrics."""
+    from nerfpipe import plots
+    from nerfpipe.artifacts import write_sequence
+    from nerfpipe.orbit import path_cameras
+
+    cfg, out = trainer.cfg, trainer.out
+    psnr, ssim = validate(trainer, cfg.final_eval_views)
+    stats = trainer.model.stats()
+    metrics = {
+        "val_psnr": psnr,
+        "val_ssim": ssim,
+        "val_views": cfg.final_eval_views or len(trainer.scene.splits[eval_split(trainer.scene)]),
+        "eval_scale": cfg.eval_scale,
+        "train_seconds": trainer.train_seconds,
+        "iterations": trainer.step,
+        "seconds_per_iteration": trainer.train_seconds / max(trainer.step, 1),
+        "rays_per_step": cfg.rays_per_step,
+        "model": trainer.model_name,
+        **stats,
+    }
+    plots.plot_psnr(trainer.history, out / "psnr.png")
+    plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
+    plots.plot_cameras(trainer.scene, trainer.model, out / "cameras.png")
+    if cfg.video_frames:
+        cams = path_cameras(trainer.scene, "test", cfg.video_frames)
+        w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))
+        bg = background_colors(trainer.eval_bg, 1)[0]
+        views = render_cameras(trainer.model, resize_cameras(cams, w, h).to(cfg.device), cfg.chunk, bg)
+        metrics["video"] = write_sequence(views, out, "orbit", depth=True)
+        metrics["depth_colormap"] = metrics["video"]["depth_mapping"]
+    write_json(out / "metrics.json", metrics)
+    return metrics

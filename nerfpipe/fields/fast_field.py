@@ -1,0 +1,114 @@
+"""A radiance field of dense multiresolution grids and a small colour MLP, fast on CPU.
+
+Density is one channel per grid level, the levels summed and then activated (``softplus`` after
+interpolation, as in DVGO, so surfaces can be sharper than a voxel). Colour comes from
+feature grids at the same levels, concatenated with an encoding of the viewing direction and
+decoded by a two-layer MLP.
+
+Glossary:
+    x01   points mapped from the scene box to the unit cube
+    raw   density before activation
+"""
+
+import math
+
+import torch
+from torch import nn
+
+from nerfpipe.fields.grid import DenseGridEncoding, trilinear_corners, grid_gather
+from nerfpipe.typing import Float, Tensor
+
+
+def direction_encoding(d: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 16"]:
+    """Real spherical harmonics of degree <= 3 of unit directions (instant-ngp's colour input)."""
+    x, y, z = d.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479177387814),
+            -0.48860251190291987 * y,
+            0.48860251190291987 * z,
+            -0.48860251190291987 * x,
+            1.0925484305920792 * x * y,
+            -1.0925484305920792 * y * z,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * x * z,
+            0.54627421529603959 * (xx - yy),
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * x * y * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ],
+        dim=-1,
+    )
+
+
+class FastField(nn.Module):
+    """Density and view-dependent colour from dense grids over ``aabb``.
+
+    Args:
+        aabb: scene box ``[min, max]``.
+        resolutions: vertices per axis of each grid level (shared by density and features).
+        feature_channels: colour features per vertex and level.
+        hidden: width of the colour MLP.
+        init_density: density everywhere at the start (sets the activation shift).
+    """
+
+    def __init__(
+        self,
+        aabb: Float[Tensor, "2 3"],
+        resolutions: "list[tuple[int, int, int]]",
+        feature_channels: int = 4,
+        hidden: int = 64,
+        init_density: float = 0.1,
+    ) -> None:
+        super().__init__()
+        self.register_buffer("aabb", aabb.detach().clone().float())
+        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
+        self.feature_grid = DenseGridEncoding(resolutions, feature_channels)
+        self.shift = math.log(math.expm1(init_density))
+        self.mlp = nn.Sequential(
+            nn.Linear(self.feature_grid.out_dim + 16, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, 3),
+        )
+
+    def normalize(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+        return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
+
+    def corners(self, points: Float[Tensor, "num_points 3"]) -> list:
+        """Trilinear corners of every level (shared by the density and feature reads)."""
+        x01 = self.normalize(points)
+        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions]
+
+    def density_from_corners(self, corners: list) -> Float[Tensor, "num_points"]:
+        raw = None
+        for table, (idx, w) in zip(self.density_grid.tables, corners):
+            v = grid_gather(table, idx, w)
+            raw = v if raw is None else raw + v
+        return nn.functional.softplus(raw[:, 0] + self.shift)
+
+    def rgb_from_corners(self, corners: list, directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+        feats = [grid_gather(t, idx, w) for t, (idx, w) in zip(self.feature_grid.tables, corners)]
+        h = torch.cat(feats + [direction_encoding(directions)], dim=-1)
+        return torch.sigmoid(self.mlp(h))
+
+    def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+        return self.density_from_corners(self.corners(points))
+
+    def rgb(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+        return self.rgb_from_corners(self.corners(points), directions)
+
+    def density_tv(self, num_cells: int) -> Float[Tensor, ""]:
+        """Total variation of the finest density level on ``num_cells`` random vertices."""
+        table, res = self.density_grid.tables[-1], self.density_grid.resolutions[-1]
+        ijk = torch.stack([torch.randint(0, r - 1, (num_cells,), device=table.device) for r in res], dim=-1)
+        row = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]
+        v = table[row]
+        steps = (res[1] * res[2], res[2], 1)
+        return sum(((table[row + s] - v) ** 2).mean() for s in steps)

@@ -1,0 +1,135 @@
+"""Cleaning and simplification of extracted meshes (pymeshlab), and face visibility (Open3D).
+
+* :func:`remove_small_components` drops floaters: connected pieces whose bounding-box diagonal
+  is a small fraction of the whole mesh's;
+* :func:`visible_faces` marks the faces some training camera sees (a z-buffer test against
+  a ray-cast depth map per camera), so faces no camera sees (inner blobs) can be dropped;
+* :func:`close_holes` fills holes up to a number of boundary edges;
+* :func:`simplify` runs quadric edge collapse to a target face count;
+* :func:`hausdorff_distance` measures what simplification changed.
+"""
+
+import numpy as np
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.rays import camera_rays
+from nerfpipe.typing import Bool
+
+
+def _meshset(mesh: TriangleMesh):
+    pymeshlab = require("pymeshlab", "mesh")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(mesh.to_pymeshlab())
+    return ms
+
+
+def _result(ms, mesh: TriangleMesh, **info) -> TriangleMesh:
+    out = TriangleMesh.from_pymeshlab(ms.current_mesh(), with_colors=mesh.vertex_colors is not None, info=mesh.info)
+    out.info.update(info)
+    return out
+
+
+def remove_small_components(mesh: TriangleMesh, min_diameter_fraction: float = 0.05) -> TriangleMesh:
+    """Drop connected components whose diagonal is below ``min_diameter_fraction`` of the mesh's."""
+    pymeshlab = require("pymeshlab", "mesh")
+    ms = _meshset(mesh)
+    ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(100.0 * min_diameter_fraction), removeunref=True)
+    out = _result(ms, mesh)
+    out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
+    return out
+
+
+def close_holes(mesh: TriangleMesh, max_hole_edges: int = 30) -> TriangleMesh:
+    """Fill holes bounded by at most ``max_hole_edges`` edges (needs a two-manifold mesh)."""
+    ms = _meshset(mesh)
+    ms.meshing_repair_non_manifold_edges()
+    try:
+        ms.meshing_close_holes(maxholesize=int(max_hole_edges))
+    except Exception as exc:  # pymeshlab raises PyMeshLabException on non-manifold input
+        raise NerfpipeError(f"closing holes failed: {exc}") from None
+    return _result(ms, mesh)
+
+
+def simplify(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
+    """Quadric edge collapse down to at most ``target_faces`` faces (normals and topology preserved)."""
+    if target_faces < 4:
+        raise NerfpipeError(f"target face count must be at least 4, got {target_faces}")
+    if target_faces >= mesh.num_faces:
+        raise NerfpipeError(f"target face count {target_faces} is not below the mesh's {mesh.num_faces} faces: nothing to simplify; choose a smaller --faces")
+    ms = _meshset(mesh)
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preservenormal=True, preservetopology=False, optimalplacement=True, planarquadric=True, autoclean=True)
+    out = _result(ms, mesh)
+    if out.num_faces > target_faces:  # quadric collapse can stop a little short; a second pass finishes
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preservenormal=True, autoclean=True)
+        out = _result(ms, mesh)
+    return out
+
+
+def hausdorff_distance(a: TriangleMesh, b: TriangleMesh, samples: int = 200_000) -> "dict[str, float]":
+    """Symmetric Hausdorff distance (max) and the mean distance between two meshes (pymeshlab sampling)."""
+    pymeshlab = require("pymeshlab", "mesh")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(a.to_pymeshlab())
+    ms.add_mesh(b.to_pymeshlab())
+    d_ab = ms.get_hausdorff_distance(sampledmesh=0, targetmesh=1, samplevert=True, sampleface=True, samplenum=int(samples), maxdist=pymeshlab.PercentageValue(100.0))
+    d_ba = ms.get_hausdorff_distance(sampledmesh=1, targetmesh=0, samplevert=True, sampleface=True, samplenum=int(samples), maxdist=pymeshlab.PercentageValue(100.0))
+    return {"max": max(d_ab["max"], d_ba["max"]), "mean": 0.5 * (d_ab["mean"] + d_ba["mean"])}
+
+
+def _scaled(cameras: Cameras, max_side: int) -> Cameras:
+    """Cameras shrunk so the longer image side is at most ``max_side`` pixels (same field of view)."""
+    s = torch.clamp(max_side / torch.maximum(cameras.width, cameras.height).to(cameras.fx), max=1.0)
+    w, h = (cameras.width * s).round().clamp(min=1), (cameras.height * s).round().clamp(min=1)
+    sx, sy = w / cameras.width, h / cameras.height
+    return Cameras(cameras.world_from_cam, cameras.fx * sx, cameras.fy * sy, cameras.cx * sx, cameras.cy * sy, w.long(), h.long(), cameras.distortion, cameras.dist_params)
+
+
+def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 200, tolerance: "float | None" = None) -> Bool[np.ndarray, "num_faces"]:
+    """Faces whose centre some camera sees: in its image and not behind the ray-cast surface.
+
+    For each camera a depth map of the mesh is ray-cast at ``max_side`` pixels; a face is
+    seen when its centre projects into the image at a depth within ``tolerance`` (default
+    0.5% of the mesh diagonal) of the farthest ray-cast depth among the 3×3 pixels around it (lenient at silhouettes
+    and grazing angles; faces hidden behind a visible surface are still caught).
+    """
+    o3d = require("open3d", "mesh")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh.to_open3d_tensor())
+    cams = _scaled(cameras.reshape(-1).to(dtype=torch.float64), max_side)
+    tol = 0.005 * mesh.diagonal() if tolerance is None else tolerance
+    centres = torch.from_numpy(mesh.vertices[mesh.faces].mean(1))
+    seen = torch.zeros(mesh.num_faces, dtype=torch.bool)
+    for i in range(len(cams)):
+        zbuf = _depth_map(scene, cams, i)
+        zbuf = torch.nn.functional.max_pool2d(zbuf[None, None], 3, stride=1, padding=1)[0, 0]
+        uv, z = _project(cams[i], centres)
+        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = (z > 0) & (col >= 0) & (row >= 0) & (col < int(cams.width[i])) & (row < int(cams.height[i]))
+        depth = torch.full_like(z, -1.0)
+        depth[inside] = zbuf[row[inside], col[inside]]
+        seen |= inside & (z <= depth + tol)
+    return seen.numpy()
+
+
+def _project(cam: Cameras, points: torch.Tensor):
+    """Project world points with one camera (broadcast by hand: Cameras.project wants equal batch shapes)."""
+    cfw = cam.cam_from_world
+    p = points @ cfw[:3, :3].T + cfw[:3, 3]
+    z = p[:, 2]
+    xy = p[:, :2] / z.clamp(min=1e-12)[:, None]
+    n = len(points)
+    expand = Cameras(cam.world_from_cam.expand(n, 4, 4), cam.fx.expand(n), cam.fy.expand(n), cam.cx.expand(n), cam.cy.expand(n), cam.width.expand(n), cam.height.expand(n), cam.distortion.expand(n), cam.dist_params.expand(n, 4))
+    return expand.normalized_to_pixel(xy), z
+
+
+def _depth_map(scene, cams: Cameras, index: int) -> torch.Tensor:
+    """Camera-z depth of the first hit per pixel (inf where the ray misses)."""
+    import open3d as o3d
+
+    rays = camera_rays(cams, index)
+    o3d_rays = torch.cat([rays.origins, rays.directions], dim=-1).float().numpy()
+    t = torch.from_numpy(scene.cast_rays(o3d.core.Tensor(o3d_rays))["t_hit"].numpy()).double()
+    return t * rays.z_scale

@@ -1,0 +1,68 @@
+"""Writing and reading meshes: PLY export in the dataset's input frame, written atomically.
+
+:func:`to_input_frame` undoes the normalisation an adapter applied
+(``SceneData.world_from_input``), so the exported mesh sits on the input's cameras and
+points. :func:`write_ply` writes binary little-endian PLY (float xyz, uchar rgb, int faces),
+which Open3D, trimesh and MeshLab read.
+"""
+
+import os
+import tempfile
+from pathlib import Path
+
+from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.scene import Similarity
+
+
+def to_input_frame(mesh: TriangleMesh, world_from_input: Similarity) -> TriangleMesh:
+    """Map a world-frame mesh to the input frame (the inverse of the adapter's normalisation)."""
+    out = mesh.transformed(world_from_input.inverse())
+    out.info["frame"] = "input"
+    return out
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write to a temporary file in the same folder, then rename over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def ply_bytes(mesh: TriangleMesh) -> bytes:
+    """Binary PLY of the mesh (vertex colours when present), via trimesh's exporter."""
+    trimesh = require("trimesh", "mesh")
+    return trimesh.exchange.ply.export_ply(mesh.to_trimesh(), encoding="binary", vertex_normal=False, include_attributes=False)
+
+
+def write_ply(mesh: TriangleMesh, path: "str | Path") -> Path:
+    """Write ``mesh`` to ``path`` atomically (nothing half-written on failure)."""
+    if mesh.num_faces == 0:
+        raise NerfpipeError("refusing to write an empty mesh (no faces)", path)
+    atomic_write_bytes(Path(path), ply_bytes(mesh))
+    return Path(path)
+
+
+def read_mesh(path: "str | Path") -> TriangleMesh:
+    """Read a triangle mesh file (PLY, OBJ, STL, OFF, GLB...) with trimesh."""
+    trimesh = require("trimesh", "mesh")
+    path = Path(path)
+    if not path.is_file():
+        raise NerfpipeError("mesh file not found", path)
+    try:
+        m = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise NerfpipeError(f"cannot read mesh ({type(exc).__name__}: {exc})", path) from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise NerfpipeError("file holds no triangles", path)
+    colors = None
+    if m.visual.kind == "vertex":
+        colors = m.visual.vertex_colors[:, :3]
+    return TriangleMesh(m.vertices, m.faces, colors)

@@ -1,0 +1,269 @@
+"""The fast default model: dense multiresolution grids, an occupancy grid and packed rendering.
+
+Only what the scene needs is modelled and evaluated: the field lives in the scene box (tightened
+to the occupied cells once training has found them), rays are marched only through occupied
+cells with a step tied to the grid resolution, a cheap density-only pass finds where each ray's
+transmittance has run out, and the colour pass runs on the samples that matter (packed, no padding).
+
+Glossary:
+    step_size   distance between samples along rays: ``step_ratio`` of the finest voxel
+    preset      capacity (grid resolutions); ``auto`` picks one from image count and size
+"""
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from torch.optim.optimizer import register_optimizer_step_pre_hook
+import torch.nn.functional as F
+
+from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples
+from nerfpipe.fields.fast_field import FastField
+from nerfpipe.fields.grid import axis_resolution
+from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, render_weights_packed
+from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
+from nerfpipe.rays import RayBundle
+from nerfpipe.typing import Float, Tensor
+
+PRESETS: "dict[str, dict]" = {
+    "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64),
+    "medium": dict(levels=(32, 64, 128, 192), feature_channels=4, hidden=64),
+    "large": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64),
+}
+"""Capacity presets: vertices per axis of each grid level along the box's longest side."""
+
+
+def auto_preset(info: SceneInfo) -> str:
+    """Capacity from the scene: more pixels of evidence afford finer grids."""
+    pixels = info.num_images * info.pixels_per_image
+    if pixels < 6e6:
+        return "small"
+    return "medium" if pixels < 24e6 else "large"
+
+
+@dataclass
+class FastConfig:
+    """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
+
+    preset: str = "auto"
+    """Capacity: ``auto`` (from image count and resolution), ``small``, ``medium`` or ``large``."""
+    levels: "tuple[int, ...] | None" = None
+    """Override the preset's grid levels (vertices along the box's longest side)."""
+    feature_channels: "int | None" = None
+    """Override the preset's colour features per vertex and level."""
+    hidden: "int | None" = None
+    """Override the preset's colour MLP width."""
+    grid_lr: float = 0.05
+    """Adam learning rate of the grid tables."""
+    mlp_lr: float = 5e-3
+    """Adam learning rate of the colour MLP."""
+    step_ratio: float = 0.5
+    """Sample spacing along rays, in voxels of the finest level."""
+    occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
+    """The occupancy grid that skips empty space."""
+    init_alpha: float = 0.01
+    """Opacity of one step everywhere at the start."""
+    tighten_step: int = 256
+    """Shrink the box to the occupied cells at this step and resample the grids (0: never)."""
+    box_margin: float = 0.05
+    """Fraction of the box size added around the occupied cells when tightening."""
+    min_transmittance: float = 1e-4
+    """Early ray termination: samples behind this transmittance are not shaded."""
+    min_alpha: float = 1e-4
+    """Samples less opaque than this are not shaded (after warm-up)."""
+    distortion_weight: float = 0.0
+    """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
+    tv_weight: float = 0.0
+    """Weight of total variation on the finest density grid (0 = off)."""
+
+    def setup(self, scene_info: SceneInfo) -> "FastModel":
+        return FastModel(self, scene_info)
+
+    def resolved(self, scene_info: SceneInfo) -> dict:
+        """The capacity actually used: preset values with overrides applied."""
+        name = auto_preset(scene_info) if self.preset == "auto" else self.preset
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose from auto, {', '.join(PRESETS)}")
+        out = dict(PRESETS[name], preset=name)
+        for key in ("levels", "feature_channels", "hidden"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        return out
+
+
+def _reset_resized_state(optimizer, args, kwargs) -> None:
+    """Global optimiser pre-step hook: forget state of parameters whose shape changed (grid resampling)."""
+    for p, st in list(optimizer.state.items()):
+        if any(isinstance(v, Tensor) and v.ndim > 0 and v.shape != p.shape for v in st.values()):
+            optimizer.state[p] = {}
+
+
+_HOOK = None
+
+
+def _install_hook() -> None:
+    global _HOOK
+    if _HOOK is None:
+        _HOOK = register_optimizer_step_pre_hook(_reset_resized_state)
+
+
+class FastModel(Model):
+    """Grid field + occupancy grid + packed volume rendering."""
+
+    def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
+        super().__init__()
+        self.cfg, self.info = cfg, info
+        self.capacity = cfg.resolved(info)
+        aabb = info.aabb.detach().float()
+        self.field = FastField(aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"])
+        self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
+        self.grid = cfg.occupancy.setup(aabb)
+        self.register_buffer("march_box", aabb.clone())
+        self._samples_per_ray = 0.0
+        self._step = 0
+        _install_hook()
+
+    def _resolutions(self, aabb: Float[Tensor, "2 3"]) -> "list[tuple[int, int, int]]":
+        extent = aabb[1] - aabb[0]
+        return [axis_resolution(extent, int(n)) for n in self.capacity["levels"]]
+
+    @property
+    def step_size(self) -> float:
+        extent = self.field.aabb[1] - self.field.aabb[0]
+        res = torch.tensor(self.field.density_grid.resolutions[-1], dtype=extent.dtype, device=extent.device)
+        return float((extent / (res - 1)).min()) * self.cfg.step_ratio
+
+    # ------------------------------------------------------------------ rendering
+    def density_fn(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+        return self.field.density(points)
+
+    def rgb_fn(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+        return self.field.rgb(points, directions)
+
+    @torch.no_grad()
+    def _prune(self, samples: PackedSamples, rays: RayBundle) -> PackedSamples:
+        """Density-only pass: keep samples the ray still reaches that are not transparent."""
+        if len(samples) == 0:
+            return samples
+        sigma = torch.cat([self.field.density(p) for p in samples.points(rays.origins, rays.directions).split(1 << 20)])
+        deltas = samples.t_ends - samples.t_starts
+        _, trans = render_weights_packed(sigma, deltas, samples.ray_indices)
+        keep = trans > self.cfg.min_transmittance
+        if self._step > self.cfg.occupancy.warmup_steps or not self.training:
+            keep &= -torch.expm1(-sigma * deltas) > self.cfg.min_alpha
+        return samples.select(keep)
+
+    def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
+        shape = rays.shape
+        flat = rays.reshape(-1)
+        bg = background.expand(*shape, 3).reshape(-1, 3)
+        samples = self.grid.march(
+            flat.origins, flat.directions, self.info.near, self.info.far, self.step_size,
+            jitter=self.training, aabb=self.march_box,
+        )
+        samples = self._prune(samples, flat)
+        pts = samples.points(flat.origins, flat.directions)
+        corners = self.field.corners(pts)
+        sigma = self.field.density_from_corners(corners)
+        rgbs = self.field.rgb_from_corners(corners, flat.directions[samples.ray_indices])
+        weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
+        t_mids = 0.5 * (samples.t_starts + samples.t_ends)
+        rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
+        if self.training:
+            self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
+        extras = {}
+        if self.training and self.cfg.distortion_weight > 0:
+            extras["distortion"] = distortion_loss_packed(
+                weights, samples.t_starts, samples.t_ends, samples.ray_indices, len(flat)
+            ).mean()
+        return RenderOutputs(
+            rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape),
+            num_samples=len(samples), extras=extras,
+        )
+
+    def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
+        losses = {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
+        if "distortion" in outputs.extras:
+            losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
+        if self.cfg.tv_weight > 0 and self.training:
+            losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16)
+        return losses
+
+    # ------------------------------------------------------------------ training hooks
+    def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":
+        return {Callback.BEFORE_TRAIN_ITERATION: [self._before_step]}
+
+    def _before_step(self, step: int) -> None:
+        self._step = step
+        occ = self.cfg.occupancy
+        if step >= occ.warmup_steps and step % occ.update_every == 0:
+            self.grid.update(self.field.density, self.step_size)
+            self.march_box.copy_(self.grid.occupied_aabb())
+        if self.cfg.tighten_step and step == self.cfg.tighten_step:
+            self.tighten()
+
+    @torch.no_grad()
+    def tighten(self) -> None:
+        """Shrink the field's box to the occupied cells (plus a margin) and resample its grids."""
+        box = self.grid.occupied_aabb()
+        margin = self.cfg.box_margin * (box[1] - box[0])
+        old = self.field.aabb
+        box = torch.stack([torch.maximum(box[0] - margin, old[0]), torch.minimum(box[1] + margin, old[1])])
+        resolutions = self._resolutions(box)
+        for grid in (self.field.density_grid, self.field.feature_grid):
+            for i, (table, res) in enumerate(zip(grid.tables, resolutions)):
+                table.data = self._resample(table.data, grid.resolutions[i], old, box, res)
+            grid.resolutions = resolutions
+        self.field.aabb.copy_(box)
+        self.grid.aabb.copy_(box)
+        self.grid.density.zero_()
+        self.grid.update(self.field.density, self.step_size)
+        self.march_box.copy_(self.grid.occupied_aabb())
+
+    @staticmethod
+    def _resample(table, old_res, old_box, new_box, new_res) -> Tensor:
+        """Values of a grid table at the vertices of a new grid over ``new_box``."""
+        from nerfpipe.fields.grid import trilinear
+
+        axes = [torch.linspace(float(new_box[0, a]), float(new_box[1, a]), new_res[a], device=table.device) for a in range(3)]
+        pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        x01 = (pts - old_box[0]) / (old_box[1] - old_box[0])
+        return torch.cat([trilinear(table, old_res, x) for x in x01.split(1 << 20)])
+
+    def param_groups(self) -> "list[dict]":
+        grids = list(self.field.density_grid.parameters()) + list(self.field.feature_grid.parameters())
+        return [
+            {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15},
+            {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15},
+        ]
+
+    def stats(self) -> "dict[str, float]":
+        out = {k: float(v) for k, v in super().stats().items()}
+        out.update(
+            occupied_fraction=self.grid.occupied_fraction,
+            samples_per_ray=float(self._samples_per_ray),
+            finest_resolution=float(max(self.field.density_grid.resolutions[-1])),
+        )
+        return out
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        """Accept checkpoints whose grids were resampled to a tightened box."""
+        key = prefix + "field.aabb"
+        if key in state_dict:
+            resolutions = self._resolutions(state_dict[key].to(self.field.aabb))
+            for name in ("density_grid", "feature_grid"):
+                grid = getattr(self.field, name)
+                for i, table in enumerate(grid.tables):
+                    src = state_dict.get(f"{prefix}field.{name}.tables.{i}")
+                    if src is not None and src.shape != table.shape:
+                        table.data = torch.empty_like(src)
+                grid.resolutions = resolutions
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+SPEC = ModelSpec(
+    name="fast",
+    description="Dense multiresolution grids + occupancy grid + packed rendering: fast on CPU.",
+    config=FastConfig,
+)

@@ -1,0 +1,92 @@
+"""One renderer for every image a model makes: validation views, test paths, orbits, depth.
+
+:func:`render_cameras` renders whole cameras in chunks of rays under ``torch.no_grad``, so the
+memory it needs is set by ``chunk`` (rays) times the model's samples per ray, not by the image size.
+"""
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.models.base import Model
+from nerfpipe.rays import RayBundle, camera_rays
+from nerfpipe.typing import Float, Tensor
+
+
+@dataclass
+class RenderedView:
+    """One rendered camera."""
+
+    rgb: Float[Tensor, "H W 3"]
+    """Colour composited over the background, in [0, 1]."""
+    depth: Float[Tensor, "H W"]
+    """Expected distance along the ray ``sum w t`` (not divided by ``acc``)."""
+    acc: Float[Tensor, "H W"]
+    """Accumulated opacity."""
+
+    @property
+    def surface_depth(self) -> Float[Tensor, "H W"]:
+        """Expected distance of the surface the ray hits: ``depth / acc``."""
+        return self.depth / self.acc.clamp(min=1e-6)
+
+
+def render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: int = 4096) -> "tuple[Tensor, Tensor, Tensor]":
+    """Render a flat batch of rays in chunks; returns ``(rgb [N,3], depth [N], acc [N])``."""
+    out = {"rgb": [], "depth": [], "acc": []}
+    for start in range(0, len(rays), chunk):
+        part = rays[start : start + chunk]
+        res = model.get_outputs(part, background.to(part.origins).expand(len(part), 3))
+        for key in out:
+            out[key].append(getattr(res, key))
+    return tuple(torch.cat(out[k]) for k in ("rgb", "depth", "acc"))
+
+
+@torch.no_grad()
+def render_cameras(
+    model: Model, cameras: Cameras, chunk: int = 4096, background: "Float[Tensor, '3'] | None" = None
+) -> "list[RenderedView]":
+    """Render every camera of a flat batch (sizes may differ), model in eval mode.
+
+    Args:
+        model: any :class:`~nerfpipe.models.base.Model`.
+        cameras: ``[num_cams]`` cameras on the model's device.
+        chunk: rays per forward pass (bounds memory).
+        background: colour behind the volume (default black).
+    """
+    background = torch.zeros(3) if background is None else background
+    was_training = model.training
+    model.eval()
+    views = []
+    try:
+        for i in range(len(cameras)):
+            rays = camera_rays(cameras, i)
+            h, w = rays.shape
+            rgb, depth, acc = render_rays(model, rays.reshape(h * w), background, chunk)
+            views.append(RenderedView(rgb.reshape(h, w, 3).clamp(0, 1), depth.reshape(h, w), acc.reshape(h, w)))
+    finally:
+        model.train(was_training)
+    return views
+
+
+def resize_cameras(cameras: Cameras, width: int, height: int) -> Cameras:
+    """The same cameras imaging ``width x height`` pixels (intrinsics scaled per axis)."""
+    sx = width / cameras.width.to(cameras.fx.dtype)
+    sy = height / cameras.height.to(cameras.fx.dtype)
+    return replace(
+        cameras,
+        fx=cameras.fx * sx,
+        fy=cameras.fy * sy,
+        cx=cameras.cx * sx,
+        cy=cameras.cy * sy,
+        width=torch.full_like(cameras.width, width),
+        height=torch.full_like(cameras.height, height),
+    )
+
+
+def to_uint8(image: Float[Tensor, "*bs"]) -> "object":
+    """``[0, 1]`` float image -> uint8 numpy array."""
+    return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+__all__ = ["RenderedView", "render_cameras", "render_rays", "resize_cameras", "to_uint8"]

@@ -1,0 +1,84 @@
+"""The run folder: ``config.json`` (enough to rebuild scene and model), ``checkpoint.pt``, outputs.
+
+``config.json`` holds ``{"data": path, "model": name, "model_config": {...}, "trainer": {...}}``;
+:func:`load_run` rebuilds the scene (through ``data_adapters.load``) and the trained model.
+"""
+
+import dataclasses
+import json
+import os
+import typing
+from pathlib import Path
+
+import torch
+
+from nerfpipe.errors import NerfpipeError
+
+CONFIG = "config.json"
+CHECKPOINT = "checkpoint.pt"
+
+
+def to_dict(obj) -> dict:
+    """A (nested) config dataclass as JSON-friendly data."""
+    return json.loads(json.dumps(dataclasses.asdict(obj), default=str))
+
+
+def from_dict(cls: type, data: dict):
+    """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys are an error."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise NerfpipeError(f"unknown {cls.__name__} settings: {', '.join(sorted(unknown))}")
+    kwargs = {}
+    for key, value in data.items():
+        hint = hints[key]
+        kwargs[key] = from_dict(hint, value) if dataclasses.is_dataclass(hint) and isinstance(value, dict) else value
+    return cls(**kwargs)
+
+
+def atomic_write_bytes(path: Path, write) -> None:
+    """Call ``write(tmp_path)`` then rename onto ``path`` (same folder, so the rename is atomic)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_json(path: Path, data: dict) -> None:
+    atomic_write_bytes(path, lambda p: Path(p).write_text(json.dumps(data, indent=2) + "\n"))
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    atomic_write_bytes(path, lambda p: torch.save(state, p))
+
+
+def read_config(run_dir: Path) -> dict:
+    path = Path(run_dir) / CONFIG
+    if not path.is_file():
+        raise NerfpipeError(f"not a run folder (no {CONFIG})", run_dir)
+    return json.loads(path.read_text())
+
+
+def load_run(run_dir: Path, device: str = "cpu"):
+    """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode."""
+    from data_adapters import load
+
+    from nerfpipe.models.base import SceneInfo  # noqa: F401  (documented return types)
+    from nerfpipe.models.registry import get_model
+    from nerfpipe.trainer import scene_info
+
+    cfg = read_config(run_dir)
+    ckpt_path = Path(run_dir) / CHECKPOINT
+    if not ckpt_path.is_file():
+        raise NerfpipeError(f"run has no {CHECKPOINT} yet", run_dir)
+    scene = load(Path(cfg["data"]))
+    spec = get_model(cfg["model"])
+    model = from_dict(spec.config, cfg["model_config"]).setup(scene_info(scene)).to(device)
+    model.load_state_dict(torch.load(ckpt_path, map_location=device, weights_only=False)["model"])
+    return scene, model.eval(), cfg

@@ -1,0 +1,466 @@
+"""Stages and the pipeline that chains them (STYLE habits 6 and 7).
+
+A stage is one module with a config dataclass and ``run(config, ctx) -> artifacts``. It reads and
+writes *named artifacts*: an artifact's name is its path relative to the run folder
+(``scene.json``, ``sfm``, ``export/transforms.json``); its in-memory form (a SceneData, a mesh,
+arrays) may be returned as well and is kept in :attr:`StageContext.cache`. Stages are found
+through the entry-point group ``nerfpipe.stages`` as :class:`StageSpec` objects, the built-ins
+included, so any stage can be re-run alone (``nerfpipe stage NAME RUN_DIR``).
+
+Run folder layout::
+
+    RUN_DIR/run.json                  the input and the chain (written by the pipeline)
+    RUN_DIR/stages/<name>.done.json   completion marker: config, config hash, timing, artifacts
+    RUN_DIR/<artifacts ...>           written atomically by the stages (:func:`atomic_path`)
+
+Resume rule: :meth:`Pipeline.run` skips the leading stages whose marker exists with the same
+config hash, is newer than the markers of the stages before it, and whose artifacts are all on
+disk; from the first stage that has to run, every later stage runs too. A stage interrupted half-way leaves neither a marker nor a half-written
+artifact (markers are written after the artifacts, both by ``os.replace``).
+
+Glossary:
+    artifact  a named output; ``produces`` lists the ones a stage must leave on disk
+    marker    ``stages/<name>.done.json``
+"""
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+import tomllib
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.registry import STAGE_GROUP, discover
+
+MARKER_DIR = "stages"
+RUN_RECORD = "run.json"
+TMP_PREFIX = ".tmp-"
+NOT_NEEDED = "not needed"
+SKIPPED = "skipped"
+DEFAULT_CHAIN = ("sfm", "load", "check", "export")
+"""The chain of ``nerfpipe run`` without ``--stages`` or ``--pipeline``."""
+
+log = logging.getLogger("nerfpipe.stages")
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A pipeline stage registered in the ``nerfpipe.stages`` entry-point group."""
+
+    name: str
+    """Stage name used in chains, TOML files and ``nerfpipe stage NAME``."""
+    description: str
+    """One line for ``nerfpipe stages``."""
+    config: type
+    """Config dataclass; every field has a default."""
+    run: Callable[[Any, "StageContext"], "dict[str, object]"]
+    """``run(config, ctx) -> {artifact name: Path or in-memory object}``."""
+    requires: "tuple[str, ...]" = ()
+    """Artifacts that must exist (on disk in the run folder, or in the cache) before running."""
+    produces: "tuple[str, ...]" = ()
+    """Artifacts (paths relative to the run folder) the stage leaves on disk."""
+    provides: "tuple[str, ...]" = ()
+    """In-memory artifacts ``run`` returns (``scene``, ``mesh``...); ``restore`` rebuilds them from disk."""
+    applies: "Callable[[StageContext], bool] | None" = None
+    """Whether the stage is needed for this input (e.g. ``sfm`` only for bare photos); None: always."""
+    restore: "Callable[[Any, StageContext], dict[str, object]] | None" = None
+    """Rebuild the ``provides`` artifacts from the files of a finished run (for resume and re-runs)."""
+
+
+@dataclass
+class StageContext:
+    """What a running stage may use besides its config."""
+
+    run_dir: Path
+    """The run folder; artifacts live here."""
+    source: "Path | None" = None
+    """The input dataset file or folder (None when the input is in memory)."""
+    device: str = "cpu"
+    """Torch device for stages that compute."""
+    time_budget: "float | None" = None
+    """Seconds the whole pipeline may take (None: no limit); see :meth:`time_left`."""
+    cache: "dict[str, object]" = field(default_factory=dict)
+    """In-memory artifacts and inputs (``reconstruction``, ``image_dir``, ``scene.json`` -> SceneData...)."""
+    specs: "dict[str, StageSpec]" = field(default_factory=dict)
+    """Known stages, used to restore an artifact that is on disk but not in memory."""
+    configs: "dict[str, object]" = field(default_factory=dict)
+    """Config of each known stage, for :attr:`StageSpec.restore`."""
+    started: float = field(default_factory=time.monotonic)
+    log: logging.Logger = log
+
+    def path(self, artifact: str) -> Path:
+        """Where an artifact lives in the run folder."""
+        return self.run_dir / artifact
+
+    def _provider(self, artifact: str) -> "StageSpec | None":
+        """The stage that can restore an in-memory artifact because its files are on disk."""
+        for spec in self.specs.values():
+            if artifact in spec.provides and spec.restore is not None and all(self.path(a).exists() for a in spec.produces):
+                return spec
+        return None
+
+    def has(self, artifact: str) -> bool:
+        return artifact in self.cache or self.path(artifact).exists() or self._provider(artifact) is not None
+
+    def get(self, artifact: str) -> object:
+        """An artifact: from the cache, else restored by the stage that provides it, else its path on disk."""
+        if artifact in self.cache:
+            return self.cache[artifact]
+        spec = self._provider(artifact)
+        if spec is not None:
+            self.cache.update(spec.restore(self.configs.get(spec.name) or spec.config(), self))
+            return self.cache[artifact]
+        if not self.path(artifact).exists():
+            raise NerfpipeError(f"artifact '{artifact}' is missing; run the stage that makes it first", self.run_dir)
+        return self.path(artifact)
+
+    def time_left(self) -> "float | None":
+        """Seconds left of :attr:`time_budget`, never negative; None without a budget."""
+        if self.time_budget is None:
+            return None
+        return max(0.0, self.time_budget - (time.monotonic() - self.started))
+
+
+# ---------------------------------------------------------------- atomic writes
+
+
+@contextlib.contextmanager
+def atomic_path(target: "str | Path") -> Iterator[Path]:
+    """Yield a temporary path next to ``target``; on success move it into place with ``os.replace``.
+
+    Works for a file or a folder. On any exception (KeyboardInterrupt included) the temporary
+    is removed and ``target`` is left as it was.
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp())
+        >>> with atomic_path(d / "a.txt") as tmp:
+        ...     _ = tmp.write_text("hi")
+        >>> (d / "a.txt").read_text()
+        'hi'
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f"{TMP_PREFIX}{uuid.uuid4().hex[:8]}-{target.name}")
+    try:
+        yield tmp
+        _replace(tmp, target)
+    finally:
+        _remove(tmp)
+
+
+def _replace(tmp: Path, target: Path) -> None:
+    if tmp.is_dir() and target.exists():  # os.replace cannot overwrite a non-empty folder
+        old = target.with_name(f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}-{target.name}")
+        os.replace(target, old)
+        os.replace(tmp, target)
+        _remove(old)
+    else:
+        os.replace(tmp, target)
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    elif p.exists() or p.is_symlink():
+        p.unlink()
+
+
+def sweep_temporaries(run_dir: Path) -> None:
+    """Remove the temporaries of writes that were killed before they finished (symlinks not followed)."""
+    for p in sorted(Path(run_dir).rglob(f"{TMP_PREFIX}*"), key=lambda p: -len(p.parts)):
+        _remove(p)
+
+
+def write_json(target: "str | Path", obj: object) -> Path:
+    """Write JSON atomically; returns the path."""
+    with atomic_path(target) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    return Path(target)
+
+
+def _json_default(o: object) -> object:
+    if dataclasses.is_dataclass(o):
+        return dataclasses.asdict(o)
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+# ---------------------------------------------------------------- discovery and configs
+
+
+def stages() -> "dict[str, StageSpec]":
+    """All installed stages by name (broken plugins are skipped with a PluginWarning)."""
+    return discover(STAGE_GROUP, StageSpec)
+
+
+def config_dict(config: object) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(config), default=_json_default))
+
+
+def config_hash(config: object) -> str:
+    text = json.dumps(config_dict(config), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def make_config(spec: StageSpec, values: "dict | None", where: "str | Path | None" = None) -> object:
+    """The stage's config with ``values`` (from TOML or a dict) applied; unknown keys are errors."""
+    values = dict(values or {})
+    names = {f.name: f for f in dataclasses.fields(spec.config)}
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise NerfpipeError(f"stage '{spec.name}' has no option {unknown[0]!r} (options: {', '.join(names)})", where)
+    default = spec.config()
+    for key, value in values.items():
+        current = getattr(default, key)
+        if isinstance(current, tuple) and isinstance(value, list):
+            values[key] = tuple(value)
+        elif isinstance(current, Path) and isinstance(value, str):
+            values[key] = Path(value)
+    return dataclasses.replace(default, **values)
+
+
+# ---------------------------------------------------------------- the pipeline
+
+
+@dataclass
+class StageRecord:
+    """What happened to one stage in a pipeline run."""
+
+    name: str
+    status: str
+    """``ran``, ``skipped`` (finished before), ``not needed`` (``applies`` said no)."""
+    seconds: float = 0.0
+    artifacts: "list[str]" = field(default_factory=list)
+
+
+@dataclass
+class PipelineResult:
+    """Returned by :meth:`Pipeline.run`: per-stage records, and the artifacts by name.
+
+    ``result["scene"]`` is an in-memory artifact (restored from disk on first access when its
+    stage was skipped); ``result["scene.json"]`` is the path of an on-disk one.
+    """
+
+    run_dir: Path
+    records: "list[StageRecord]"
+    seconds: float
+    context: StageContext
+    names: "list[str]"
+    """Artifacts of the chain's stages (on-disk and in-memory)."""
+
+    def keys(self) -> "list[str]":
+        return [n for n in self.names if self.context.has(n)] + [k for k in self.context.cache if k not in self.names]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.keys()
+
+    def __getitem__(self, name: str) -> object:
+        if name not in self:
+            raise KeyError(name)
+        return self.context.get(name)
+
+
+class Pipeline:
+    """An ordered chain of stages with one config each.
+
+    Example:
+        >>> p = Pipeline(["load", "check"])  # doctest: +SKIP
+        >>> result = p.run("data/colmap_mouse", "runs/mouse")  # doctest: +SKIP
+        >>> result["scene.json"].cameras.shape  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        chain: "list[str | StageSpec]",
+        configs: "dict[str, object] | None" = None,
+        registry: "dict[str, StageSpec] | None" = None,
+    ) -> None:
+        self.registry = dict(stages() if registry is None else registry)
+        self.specs: list[StageSpec] = [self._spec(s) for s in chain]
+        self.registry.update({s.name: s for s in self.specs})
+        configs = dict(configs or {})
+        self.configs = {s.name: _as_config(s, configs.pop(s.name, None)) for s in self.specs}
+        if configs:
+            raise NerfpipeError(f"config given for stage(s) not in the chain: {', '.join(sorted(configs))}")
+
+    def _spec(self, s: "str | StageSpec") -> StageSpec:
+        if isinstance(s, StageSpec):
+            return s
+        if s not in self.registry:
+            raise NerfpipeError(f"unknown stage '{s}' (installed: {', '.join(sorted(self.registry)) or 'none'})")
+        return self.registry[s]
+
+    @property
+    def names(self) -> "list[str]":
+        return [s.name for s in self.specs]
+
+    @classmethod
+    def from_toml(cls, path: "str | Path", registry: "dict[str, StageSpec] | None" = None) -> "Pipeline":
+        """Read ``stages = [...]`` and one ``[<stage name>]`` table of options per stage."""
+        path = Path(path)
+        try:
+            doc = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise NerfpipeError(f"cannot read pipeline file ({type(exc).__name__}: {exc})", path) from None
+        chain = doc.pop("stages", None)
+        if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain) or not chain:
+            raise NerfpipeError("a pipeline file needs 'stages = [\"load\", ...]', a list of stage names", path)
+        bad = [k for k, v in doc.items() if not isinstance(v, dict)]
+        if bad:
+            raise NerfpipeError(f"'{bad[0]}' must be a table [{bad[0]}] of stage options", path)
+        pipe = cls(chain, registry=registry)
+        extra = sorted(set(doc) - set(pipe.names))
+        if extra:
+            raise NerfpipeError(f"options for stage '{extra[0]}', which is not in 'stages'", path)
+        pipe.configs.update({s.name: make_config(s, doc.get(s.name), path) for s in pipe.specs})
+        return pipe
+
+    def validate(self, ctx: StageContext) -> None:
+        """Fail before running anything when a stage needs an artifact nothing provides."""
+        available = set(ctx.cache)
+        for spec in self.specs:
+            missing = [a for a in spec.requires if a not in available and not ctx.has(a)]
+            if missing:
+                makers = [s.name for s in self.registry.values() if missing[0] in s.produces + s.provides]
+                hint = f" (produced by: {', '.join(makers)})" if makers else ""
+                raise NerfpipeError(f"stage '{spec.name}' needs '{missing[0]}', which no earlier stage produces{hint}")
+            available.update(spec.produces + spec.provides)
+
+    def context(self, run_dir: "str | Path", source: "str | Path | None" = None, **kw) -> StageContext:
+        return StageContext(
+            run_dir=Path(run_dir), source=None if source is None else Path(source),
+            specs=self.registry, configs=self.configs, **kw,
+        )
+
+    def run(
+        self,
+        source: "str | Path | None",
+        run_dir: "str | Path",
+        *,
+        resume: bool = True,
+        cache: "dict[str, object] | None" = None,
+        device: str = "cpu",
+        time_budget: "float | None" = None,
+        on_stage: "Callable[[StageRecord], None] | None" = None,
+    ) -> PipelineResult:
+        """Run the chain in ``run_dir``, skipping stages finished before when ``resume``.
+
+        Args:
+            source: the input dataset (None when ``cache`` holds the input, e.g. ``reconstruction``).
+            run_dir: the run folder (created).
+            resume: skip the leading stages that finished with the same config.
+            cache: in-memory inputs and artifacts handed to the stages.
+            on_stage: called after each stage with its record (for progress output).
+        """
+        ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=dict(cache or {}))
+        ctx.run_dir.mkdir(parents=True, exist_ok=True)
+        sweep_temporaries(ctx.run_dir)
+        _check_run_record(ctx, self.names, resume)
+        self.validate(ctx)
+        records, t0, running, last = [], time.monotonic(), not resume, 0.0
+        for spec in self.specs:
+            config = self.configs[spec.name]
+            done = None if running else is_done(ctx, spec, config, after=last)
+            if done is not None:
+                last = done.get("finished_at", 0.0)
+                status = NOT_NEEDED if done.get("status") == NOT_NEEDED else SKIPPED
+                rec = StageRecord(spec.name, status, artifacts=list(done.get("artifacts", [])))
+                ctx.log.info("stage %s: finished before, skipped", spec.name)
+            else:
+                running = True
+                rec = run_stage(spec, config, ctx)
+            records.append(rec)
+            if on_stage is not None:
+                on_stage(rec)
+        names = [a for s in self.specs for a in s.produces + s.provides]
+        return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
+
+
+def _as_config(spec: StageSpec, value: object) -> object:
+    if value is None or isinstance(value, dict):
+        return make_config(spec, value)
+    if not isinstance(value, spec.config):
+        raise NerfpipeError(f"config of stage '{spec.name}' must be a {spec.config.__name__}, not {type(value).__name__}")
+    return value
+
+
+def _check_run_record(ctx: StageContext, chain: "list[str]", resume: bool) -> None:
+    """Refuse to resume a run folder made from another input; record this run's input and chain."""
+    record = ctx.run_dir / RUN_RECORD
+    source = None if ctx.source is None else str(ctx.source.resolve())
+    if resume and record.is_file():
+        old = json.loads(record.read_text())
+        if old.get("source") != source:
+            raise NerfpipeError(
+                f"this run folder was made from {old.get('source')}, not {source}; use another output folder or no resume",
+                ctx.run_dir,
+            )
+    write_json(record, {"source": source, "chain": chain})
+
+
+def marker_path(ctx: StageContext, name: str) -> Path:
+    return ctx.run_dir / MARKER_DIR / f"{name}.done.json"
+
+
+def read_marker(ctx: StageContext, name: str) -> "dict | None":
+    try:
+        return json.loads(marker_path(ctx, name).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def is_done(ctx: StageContext, spec: StageSpec, config: object, after: float = 0.0) -> "dict | None":
+    """The marker, when it has this config's hash, is newer than ``after`` and the artifacts are on disk."""
+    done = read_marker(ctx, spec.name)
+    if done is None or done.get("config_hash") != config_hash(config) or done.get("finished_at", 0.0) < after:
+        return None
+    if done.get("status") != NOT_NEEDED and not all(ctx.path(a).exists() for a in spec.produces):
+        return None
+    return done
+
+
+def run_stage(spec: StageSpec, config: object, ctx: StageContext) -> StageRecord:
+    """Run one stage now (no resume check): remove its marker, run, verify artifacts, write the marker."""
+    marker = marker_path(ctx, spec.name)
+    marker.unlink(missing_ok=True)
+    if spec.applies is not None and not spec.applies(ctx):
+        ctx.log.info("stage %s: not needed for this input", spec.name)
+        _write_marker(marker, spec, config, NOT_NEEDED, 0.0, [])
+        return StageRecord(spec.name, NOT_NEEDED)
+    missing = [a for a in spec.requires if not ctx.has(a)]
+    if missing:
+        raise NerfpipeError(f"stage '{spec.name}' needs artifact '{missing[0]}', which is missing", ctx.run_dir)
+    ctx.log.info("stage %s: running", spec.name)
+    t0 = time.monotonic()
+    out = spec.run(config, ctx) or {}
+    seconds = time.monotonic() - t0
+    for name, value in out.items():
+        if not isinstance(value, Path):
+            ctx.cache[name] = value
+    absent = [a for a in spec.produces if not ctx.path(a).exists()]
+    if absent:
+        raise NerfpipeError(f"stage '{spec.name}' finished without writing '{absent[0]}'", ctx.run_dir)
+    _write_marker(marker, spec, config, "ran", seconds, list(spec.produces))
+    ctx.log.info("stage %s: done in %.1f s", spec.name, seconds)
+    return StageRecord(spec.name, "ran", seconds, list(spec.produces))
+
+
+def _write_marker(marker: Path, spec: StageSpec, config: object, status: str, seconds: float, artifacts: "list[str]") -> None:
+    write_json(marker, {
+        "stage": spec.name, "status": status, "config": config_dict(config), "config_hash": config_hash(config),
+        "seconds": round(seconds, 3), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "finished_at": time.time(),
+        "artifacts": artifacts,
+    })  # fmt: skip

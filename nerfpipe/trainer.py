@@ -1,0 +1,178 @@
+"""The training loop shared by every model: random rays across all training images, Adam,
+validation at intervals, named callbacks, atomic checkpoints, resume, and the run's outputs.
+
+Usable from Python::
+
+    trainer = Trainer(TrainerConfig(iters=200), scene, "vanilla", VanillaConfig(), Path("runs/lego"))
+    metrics = trainer.train()
+
+Training time (``train_seconds``, the ``time_budget``) counts sampling, forward, backward, the
+optimiser step and callbacks; validation, checkpoints and plots are excluded.
+"""
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from nerfpipe.models.base import Callback, Model, SceneInfo
+from nerfpipe.pixel_sampler import PixelSampler
+from nerfpipe.runs import CHECKPOINT, CONFIG, save_checkpoint, to_dict, write_json
+from nerfpipe.scene import SceneData
+
+
+@dataclass
+class TrainerConfig:
+    """How to train a model."""
+
+    iters: int = 1000
+    """Training iterations (optimiser steps)."""
+    time_budget: "float | None" = None
+    """Stop after this many seconds of training (validation excluded), whichever of the two comes first."""
+    rays_per_step: int = 10000
+    """Rays per iteration, drawn uniformly from all pixels of all training images."""
+    lr: float = 5e-4
+    """Adam learning rate (models may set their own per parameter group)."""
+    eval_every: int = 100
+    """Validate every this many iterations (0: only at the end)."""
+    eval_views: int = 1
+    """Validation views rendered at each intermediate validation (the first ones of the val split)."""
+    final_eval_views: int = 0
+    """Validation views for the final metrics (0: all of the val split)."""
+    eval_scale: float = 1.0
+    """Resolution factor of validation renders (ground truth is area-resized to match)."""
+    seed: int = 0
+    """Seed of model initialisation, ray sampling and jitter (CPU runs are deterministic)."""
+    device: str = "cpu"
+    """Torch device."""
+    background: str = "auto"
+    """black | white | random | auto (random in training and white at evaluation for RGBA data, else black)."""
+    checkpoint_every: int = 500
+    """Write checkpoint.pt every this many iterations (and always at the end)."""
+    chunk: int = 4096
+    """Rays per forward pass when rendering whole images."""
+    video_frames: int = 60
+    """Frames of the orbit/test-path videos written at the end (0: no videos)."""
+    video_scale: float = 1.0
+    """Resolution factor of the videos."""
+    resume: bool = False
+    """Continue from the run folder's checkpoint.pt."""
+
+
+def scene_info(scene: SceneData) -> SceneInfo:
+    cams = scene.split_cameras("train")
+    pixels = int((cams.width * cams.height).max()) if len(cams) else 0
+    return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha)
+
+
+def backgrounds(mode: str, has_alpha: bool) -> "tuple[str, str]":
+    """(training, evaluation) background modes for a config value."""
+    if mode == "auto":
+        return ("random", "white") if has_alpha else ("black", "black")
+    if mode == "random":
+        return "random", "white"
+    return mode, mode
+
+
+def psnr_from_mse(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+class Trainer:
+    """Trains one model on one scene into a run folder."""
+
+    def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path) -> None:
+        self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
+        self.model_name, self.model_config = model_name, model_config
+        self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
+        torch.manual_seed(cfg.seed)
+        self.model: Model = model_config.setup(scene_info(scene)).to(cfg.device)
+        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device)
+        self.step, self.train_seconds = 0, 0.0
+        self.history = {"train": [], "val": []}  # rows: [step, seconds, psnr(, ssim)]
+        self.hooks = self.model.callbacks()
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        return {
+            "step": self.step,
+            "train_seconds": self.train_seconds,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "sampler_rng": self.generator.get_state(),
+            "history": self.history,
+        }
+
+    def load_state(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["torch_rng"])
+        self.generator.set_state(state["sampler_rng"])
+        self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
+
+    def save(self) -> None:
+        save_checkpoint(self.out / CHECKPOINT, self.state())
+
+    def write_config(self) -> None:
+        write_json(
+            self.out / CONFIG,
+            {"data": str(Path(self.scene.source).resolve()), "model": self.model_name, "model_config": to_dict(self.model_config), "trainer": to_dict(self.cfg)},
+        )
+
+    # ------------------------------------------------------------------ loop
+    def fire(self, place: Callback) -> None:
+        for hook in self.hooks.get(place, []):
+            hook(self.step)
+
+    def train_step(self) -> float:
+        """One optimiser step; returns the colour MSE of the batch."""
+        self.fire(Callback.BEFORE_TRAIN_ITERATION)
+        batch = self.sampler.sample(self.cfg.rays_per_step, self.generator)
+        outputs = self.model.get_outputs(batch.rays, batch.background)
+        losses = self.model.get_losses(outputs, batch.rgb)
+        self.optimizer.zero_grad(set_to_none=True)
+        sum(losses.values()).backward()
+        self.optimizer.step()
+        self.step += 1
+        self.fire(Callback.AFTER_TRAIN_ITERATION)
+        return float(torch.mean((outputs.rgb.detach() - batch.rgb) ** 2))
+
+    def done(self) -> bool:
+        budget = self.cfg.time_budget
+        return self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
+
+    def train(self) -> dict:
+        """Train until ``iters`` or ``time_budget``, then validate and write every output."""
+        from nerfpipe.progress import TrainProgress
+        from nerfpipe import evaluation
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.cfg.resume and (self.out / CHECKPOINT).is_file():
+            self.load_state(torch.load(self.out / CHECKPOINT, map_location=self.cfg.device, weights_only=False))
+        self.write_config()
+        self.model.train()
+        with TrainProgress(self.cfg, self.step, self.train_seconds) as bar:
+            while not self.done():
+                t0 = time.perf_counter()
+                mse = self.train_step()
+                self.train_seconds += time.perf_counter() - t0
+                self.history["train"].append([self.step, self.train_seconds, psnr_from_mse(mse)])
+                bar.update(self.step, self.train_seconds, psnr_from_mse(mse))
+                self.periodic(evaluation, bar)
+        self.fire(Callback.AFTER_TRAIN)
+        self.save()
+        return evaluation.finish(self)
+
+    def periodic(self, evaluation, bar) -> None:
+        every, ck = self.cfg.eval_every, self.cfg.checkpoint_every
+        if every and self.step % every == 0 and not self.done():
+            psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
+            bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")
+        if ck and self.step % ck == 0:
+            self.save()

@@ -1,0 +1,122 @@
+"""Stage ``load``: read the input into a :class:`~nerfpipe.scene.SceneData` and summarise it.
+
+Where the scene comes from, first match wins:
+
+1. an in-memory ``pycolmap.Reconstruction`` in the context cache (``reconstruction``), with its
+   images (``images``: a folder, or ``{image name: uint8 array}``). The model is written to
+   ``RUN_DIR/input`` (``sparse/0`` + ``images/``, linked or written) and read by the COLMAP adapter,
+   so a resumed run or ``nerfpipe stage`` finds the same scene without the caller;
+2. the ``sfm`` stage's COLMAP folder ``RUN_DIR/sfm``;
+3. the input path, through :func:`data_adapters.load`.
+
+Artifacts: ``scene.json`` (summary, and where to reload the scene from) on disk; ``scene`` in memory.
+"""
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.scene import SceneData
+from nerfpipe.stages import StageContext, StageSpec, atomic_path, write_json
+
+SCENE_JSON = "scene.json"
+INPUT_DIR = "input"
+SFM_DIR = "sfm"
+
+
+@dataclass
+class LoadConfig:
+    """Options of the ``load`` stage."""
+
+    format: "str | None" = None
+    """Adapter name (``colmap``, ``transforms``, ``npz``...); None detects the format."""
+
+
+def summary(scene: SceneData, input_path: Path, format: "str | None") -> dict:
+    """What ``scene.json`` records: where the scene was read from, and its main figures."""
+    cams = scene.cameras
+    return {
+        "input": str(Path(input_path).resolve()),
+        "format": format,
+        "adapter": scene.format,
+        "num_cameras": len(cams),
+        "splits": {k: int(len(v)) for k, v in scene.splits.items()},
+        "image_sizes": sorted({(int(w), int(h)) for w, h in zip(cams.width.tolist(), cams.height.tolist())}),
+        "camera_models": sorted(set(scene.camera_models)),
+        "near": float(scene.near),
+        "far": float(scene.far),
+        "aabb": scene.aabb.tolist(),
+        "world_from_input": scene.world_from_input.matrix().tolist(),
+        "num_points": 0 if scene.points is None else int(len(scene.points.xyz)),
+        "has_alpha": bool(scene.has_alpha),
+    }
+
+
+def write_reconstruction(rec, images: "Path | dict[str, np.ndarray]", target: Path) -> Path:
+    """Write ``rec`` as ``target/sparse/0`` plus ``target/images`` (a link to a folder, or PNG files)."""
+    with atomic_path(target) as tmp:
+        (tmp / "sparse" / "0").mkdir(parents=True)
+        rec.write(str(tmp / "sparse" / "0"))
+        if isinstance(images, dict):
+            _write_images(images, tmp / "images")
+        else:
+            images = Path(images).resolve()
+            if not images.is_dir():
+                raise NerfpipeError("the images of the reconstruction must be a folder or a dict of arrays", images)
+            (tmp / "images").symlink_to(images, target_is_directory=True)
+    return target
+
+
+def _write_images(images: "dict[str, np.ndarray]", folder: Path) -> None:
+    import imageio.v3 as iio
+
+    for name, array in images.items():
+        path = folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        iio.imwrite(path, np.asarray(array, dtype=np.uint8))
+
+
+def input_path(ctx: StageContext) -> "tuple[Path, str | None]":
+    """The dataset to read and its format (see the module docstring)."""
+    if "reconstruction" in ctx.cache:
+        if "images" not in ctx.cache:
+            raise NerfpipeError("an in-memory reconstruction needs its images (a folder or a dict of arrays)")
+        return write_reconstruction(ctx.cache["reconstruction"], ctx.cache["images"], ctx.path(INPUT_DIR)), "colmap"
+    if ctx.path(SFM_DIR).is_dir():
+        return ctx.path(SFM_DIR), "colmap"
+    if ctx.source is None:
+        raise NerfpipeError("no input: give a dataset path, or a reconstruction and its images", ctx.run_dir)
+    return ctx.source, None
+
+
+def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
+    import data_adapters
+
+    path, fmt = input_path(ctx)
+    fmt = config.format or fmt
+    scene = data_adapters.load(path, fmt)
+    write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt))
+    ctx.log.info("loaded %d cameras (%s) from %s", len(scene.cameras), scene.format, path)
+    return {"scene": scene, SCENE_JSON: ctx.path(SCENE_JSON)}
+
+
+def restore(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
+    """Reload the scene recorded in ``scene.json``."""
+    import data_adapters
+
+    record = json.loads(ctx.path(SCENE_JSON).read_text())
+    return {"scene": data_adapters.load(record["input"], record["format"])}
+
+
+STAGE = StageSpec(
+    name="load",
+    description="read the input (any adapter, the sfm result or an in-memory reconstruction) into a scene",
+    config=LoadConfig,
+    run=run,
+    produces=(SCENE_JSON,),
+    provides=("scene",),
+    restore=restore,
+)

@@ -1,0 +1,236 @@
+"""Stage ``sfm``: structure from motion with pycolmap on CPU, for a folder of photos without a model.
+
+Steps, each shown as progress: downscale the photos (longest side ``max_image_size``, EXIF
+kept so COLMAP can use the focal length) → SIFT features → exhaustive matching → incremental
+mapping (the largest model is kept) → undistortion. The result is a COLMAP folder
+``RUN_DIR/sfm`` (``images/`` undistorted, ``sparse/`` PINHOLE model, ``sfm.json`` summary)
+that the ``load`` stage reads with the COLMAP adapter. Scratch files (database, downscaled
+photos, distorted models) stay in ``RUN_DIR/sfm.work``.
+
+The stage applies when the input is a folder (or its ``images/`` subfolder) of photos that no
+data adapter recognises.
+"""
+
+import contextlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.stages import StageContext, StageSpec, atomic_path
+
+SFM_DIR = "sfm"
+WORK_DIR = "sfm.work"
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+@dataclass
+class SfmConfig:
+    """Options of the ``sfm`` stage."""
+
+    max_image_size: int = 1024
+    """Longest image side used for SfM and written to the result; larger photos are downscaled (0: keep)."""
+    camera_mode: Literal["auto", "single", "per_image"] = "auto"
+    """``auto``: one shared camera when all photos have the same size and camera model, else one per photo."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model estimated before undistortion."""
+    max_num_features: int = 8192
+    """SIFT features per image."""
+    num_threads: int = 2
+    """CPU threads for extraction, matching and mapping (-1: all)."""
+    min_registered: int = 3
+    """Fail when fewer photos than this are registered."""
+    undistort: bool = True
+    """Undistort the images into a PINHOLE model (otherwise keep the distorted model and photos)."""
+    verbose: bool = False
+    """Show COLMAP's own INFO log (otherwise only warnings and the progress bars)."""
+
+
+def photo_folder(path: "Path | None") -> "Path | None":
+    """``path/images`` or ``path`` when it holds photos, else None."""
+    if path is None or not Path(path).is_dir():
+        return None
+    for folder in (Path(path) / "images", Path(path)):
+        if folder.is_dir() and any(p.suffix.lower() in PHOTO_SUFFIXES for p in folder.iterdir()):
+            return folder
+    return None
+
+
+def applies(ctx: StageContext) -> bool:
+    """Photos, and nothing an adapter can read (nor an in-memory reconstruction)."""
+    import data_adapters
+
+    if "reconstruction" in ctx.cache or photo_folder(ctx.source) is None:
+        return False
+    try:
+        data_adapters.detect(ctx.source)
+    except NerfpipeError:
+        return True
+    return False
+
+
+def _photos(folder: Path) -> "list[Path]":
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
+
+
+def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tuple[int, int, str]]":
+    """Downscale (or link) the photos into ``out``; return ``(width, height, EXIF model)`` per photo."""
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    info = []
+    for p in photos:
+        with Image.open(p) as im:
+            exif = im.getexif()
+            model = str(exif.get(0x0110, ""))  # EXIF 'Model'
+            scale = max_size / max(im.size) if max_size > 0 else 1.0
+            if scale >= 1.0:
+                (out / p.name).symlink_to(p.resolve())
+                info.append((*im.size, model))
+                continue
+            size = (round(im.width * scale), round(im.height * scale))
+            exif_bytes = im.info.get("exif", b"")
+            im.draft("RGB", size)  # JPEG: decode at a reduced scale (>= size), much faster
+            small = im.convert("RGB").resize(size, Image.LANCZOS)
+            small.save(out / p.name, quality=95, exif=exif_bytes)
+            info.append((*small.size, model))
+    return info
+
+
+def _camera_mode(pycolmap, mode: str, info: "list[tuple[int, int, str]]"):
+    if mode == "auto":
+        mode = "single" if len(set(info)) == 1 else "per_image"
+    return pycolmap.CameraMode.SINGLE if mode == "single" else pycolmap.CameraMode.PER_IMAGE
+
+
+def _options(pycolmap, config: SfmConfig, time_left: "float | None"):
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = config.num_threads
+    ext.sift.max_num_features = config.max_num_features
+    match = pycolmap.FeatureMatchingOptions()
+    match.num_threads = config.num_threads
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = config.num_threads
+    if time_left is not None:
+        mapping.max_runtime_seconds = max(1, int(time_left))
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    return ext, match, mapping, reader
+
+
+def _progress():
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("sfm: {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+
+
+@contextlib.contextmanager
+def _colmap_log(pycolmap, verbose: bool):
+    """Silence COLMAP's INFO lines unless ``verbose`` (restored afterwards)."""
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = old if verbose else max(old, 1)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def reconstruct(images: Path, work: Path, config: SfmConfig, info, time_left: "float | None" = None):
+    """Features, matching and mapping; return (largest reconstruction, seconds per step)."""
+    pycolmap = require("pycolmap", "colmap")
+    ext, match, mapping, reader = _options(pycolmap, config, time_left)
+    db, n = work / "database.db", len(info)
+    db.unlink(missing_ok=True)
+    seconds, cpu = {}, pycolmap.Device.cpu
+    with _progress() as bar, _colmap_log(pycolmap, config.verbose):
+        t = time.monotonic()
+        task = bar.add_task("features", total=1)
+        pycolmap.extract_features(db, images, camera_mode=_camera_mode(pycolmap, config.camera_mode, info),
+                                  reader_options=reader, extraction_options=ext, device=cpu)  # fmt: skip
+        bar.update(task, completed=1, description=f"features ({n} images)")
+        seconds["features"], t = time.monotonic() - t, time.monotonic()
+        task = bar.add_task("matching", total=1)
+        pycolmap.match_exhaustive(db, matching_options=match, device=cpu)
+        bar.update(task, completed=1)
+        seconds["matching"], t = time.monotonic() - t, time.monotonic()
+        task = bar.add_task("registered images", total=n)
+        models = pycolmap.incremental_mapping(db, images, work / "sparse", options=mapping,
+                                              initial_image_pair_callback=lambda: bar.advance(task, 2),
+                                              next_image_callback=lambda: bar.advance(task, 1))  # fmt: skip
+        seconds["mapping"] = time.monotonic() - t
+    if not models:
+        raise NerfpipeError("structure from motion registered no images (too few matches between the photos)", images)
+    return max(models.values(), key=lambda r: r.num_reg_images()), seconds
+
+
+def summary(rec, photos: "list[Path]", seconds: dict) -> dict:
+    """What ``sfm/sfm.json`` records."""
+    registered = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    return {
+        "num_photos": len(photos),
+        "num_registered": len(registered),
+        "unregistered": sorted({p.name for p in photos} - set(registered)),
+        "num_points3D": rec.num_points3D(),
+        "mean_reprojection_error_px": rec.compute_mean_reprojection_error(),
+        "cameras": [{"id": int(cid), "model": c.model.name, "width": c.width, "height": c.height,
+                     "params": [float(v) for v in c.params]} for cid, c in rec.cameras.items()],  # fmt: skip
+        "seconds": {k: round(v, 2) for k, v in seconds.items()},
+    }
+
+
+def _write_result(rec, images: Path, work: Path, target: Path, undistort: bool, record: dict) -> None:
+    pycolmap = require("pycolmap", "colmap")
+    model_dir = work / "best"
+    shutil.rmtree(model_dir, ignore_errors=True)
+    model_dir.mkdir(parents=True)
+    rec.write(str(model_dir))
+    with atomic_path(target) as tmp:
+        if undistort:
+            pycolmap.undistort_images(tmp, model_dir, images)
+        else:
+            shutil.copytree(images, tmp / "images")
+            shutil.copytree(model_dir, tmp / "sparse" / "0")
+        (tmp / "sfm.json").write_text(json.dumps(record, indent=2) + "\n")
+
+
+def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
+    pycolmap = require("pycolmap", "colmap")
+    photos = _photos(photo_folder(ctx.source))
+    work = ctx.path(WORK_DIR)
+    shutil.rmtree(work, ignore_errors=True)
+    info = prepare_images(photos, work / "images", config.max_image_size)
+    rec, seconds = reconstruct(work / "images", work, config, info, ctx.time_left())
+    if rec.num_reg_images() < config.min_registered:
+        raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
+    record = summary(rec, photos, seconds)
+    with _colmap_log(pycolmap, config.verbose):
+        _write_result(rec, work / "images", work, ctx.path(SFM_DIR), config.undistort, record)
+    ctx.log.info("sfm: %d of %d photos registered, %d points", record["num_registered"], len(photos), rec.num_points3D())
+    result = pycolmap.Reconstruction(str(_model_dir(ctx.path(SFM_DIR))))
+    return {"sfm_reconstruction": result, "sfm_summary": record}
+
+
+def _model_dir(root: Path) -> Path:
+    return root / "sparse" / "0" if (root / "sparse" / "0").is_dir() else root / "sparse"
+
+
+def restore(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
+    pycolmap = require("pycolmap", "colmap")
+    root = ctx.path(SFM_DIR)
+    return {"sfm_reconstruction": pycolmap.Reconstruction(str(_model_dir(root))),
+            "sfm_summary": json.loads((root / "sfm.json").read_text())}  # fmt: skip
+
+
+STAGE = StageSpec(
+    name="sfm",
+    description="pycolmap structure from motion on CPU (only for a folder of photos without a model)",
+    config=SfmConfig,
+    run=run,
+    produces=(SFM_DIR,),
+    provides=("sfm_summary", "sfm_reconstruction"),
+    applies=applies,
+    restore=restore,
+)

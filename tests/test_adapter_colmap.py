@@ -1,0 +1,196 @@
+"""COLMAP adapter: synthetic models written by pycolmap read back exactly, plus colmap_mouse."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pycolmap = pytest.importorskip("pycolmap")
+
+import data_adapters  # noqa: E402
+from colmap_synth import PARAMS, make_scene, synthesize, write_scene  # noqa: E402
+from data_adapters import colmap  # noqa: E402
+from nerfpipe.errors import NerfpipeError  # noqa: E402
+from nerfpipe.functional.distortion import Distortion  # noqa: E402
+from nerfpipe.scene import holdout_split  # noqa: E402
+
+# COLMAP model -> (nerfpipe code, the 4 nerfpipe distortion params from COLMAP's params p)
+EXPECTED = {
+    "SIMPLE_PINHOLE": (Distortion.NONE, lambda p: [0, 0, 0, 0]),
+    "PINHOLE": (Distortion.NONE, lambda p: [0, 0, 0, 0]),
+    "SIMPLE_RADIAL": (Distortion.OPENCV, lambda p: [p[3], 0, 0, 0]),
+    "RADIAL": (Distortion.OPENCV, lambda p: [p[3], p[4], 0, 0]),
+    "OPENCV": (Distortion.OPENCV, lambda p: p[4:8]),
+    "OPENCV_FISHEYE": (Distortion.FISHEYE, lambda p: p[4:8]),
+}
+
+
+def _reference(rec):
+    """Registered images sorted by name, their world_from_cam (float64) and cameras, from pycolmap."""
+    images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
+    w2c = []
+    for im in images:
+        m = np.eye(4)
+        m[:3] = im.cam_from_world().matrix()
+        w2c.append(np.linalg.inv(m))
+    return images, torch.tensor(np.stack(w2c))
+
+
+def _focal_centre(model, p):
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        return p[0], p[0], p[1], p[2]
+    return p[0], p[1], p[2], p[3]
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])
+@pytest.mark.parametrize("model", list(EXPECTED))
+def test_round_trip(tmp_path, model, text):
+    rec = synthesize(model, frames=9)
+    scene = data_adapters.load(write_scene(rec, tmp_path, text=text))
+    images, w2c_ref = _reference(rec)
+    assert scene.format == "colmap" and scene.camera_models == [model] * len(images)
+    assert [p.name for p in scene.images.paths] == [im.name for im in images]
+    # poses: undo the normalisation and compare with pycolmap (float32 storage)
+    back = scene.world_from_input.inverse().apply_world_from_cam(scene.cameras.world_from_cam.double())
+    torch.testing.assert_close(back, w2c_ref, atol=1e-5 * float(w2c_ref[:, :3, 3].abs().max()), rtol=0)
+    p = PARAMS[model]
+    code, dist = EXPECTED[model]
+    f32 = lambda v: torch.tensor(v, dtype=torch.float32).expand(len(images))  # noqa: E731
+    for name, value in zip(("fx", "fy", "cx", "cy"), _focal_centre(model, p)):
+        assert torch.equal(getattr(scene.cameras, name), f32(value)), name
+    assert (scene.cameras.distortion == int(code)).all()
+    expected = torch.tensor([float(x) for x in dist(p)], dtype=torch.float32).expand(len(images), 4)
+    assert torch.equal(scene.cameras.dist_params, expected)
+    assert (scene.cameras.width == 64).all() and (scene.cameras.height == 48).all()
+
+
+def test_points_and_observations(tmp_path):
+    rec = synthesize("OPENCV", frames=6, points=50)
+    scene = data_adapters.load(write_scene(rec, tmp_path))
+    ids = sorted(rec.points3D)
+    xyz_ref = torch.tensor(np.array([rec.points3D[i].xyz for i in ids]))
+    xyz_back = scene.world_from_input.inverse().apply_points(scene.points.xyz.double())
+    torch.testing.assert_close(xyz_back, xyz_ref, atol=1e-5 * float(xyz_ref.abs().max()), rtol=0)
+    rgb_ref = torch.tensor(np.array([rec.points3D[i].color for i in ids]), dtype=torch.uint8)
+    assert torch.equal(scene.points.rgb, rgb_ref)
+    obs = scene.meta["observations"]
+    images, _ = _reference(rec)
+    assert len(obs["xy"]) == sum(im.num_points3D for im in images)
+    first = images[1].get_observation_points2D()
+    sel = obs["cam_idx"] == 1
+    np.testing.assert_array_equal(obs["xy"][sel], np.array([q.xy for q in first]))
+    np.testing.assert_array_equal(np.array(ids)[obs["point_idx"][sel]], [q.point3D_id for q in first])
+
+
+def test_split_rule_and_layouts(tmp_path):
+    rec = synthesize("PINHOLE", frames=17)
+    for layout in ("sparse/0", "sparse", "."):
+        root = write_scene(rec, tmp_path / layout.replace("/", "_").replace(".", "root"), model_dir=layout)
+        assert colmap.detect(root) > 0
+        scene = data_adapters.load(root)
+        names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+        expected = holdout_split(len(names))
+        assert [scene.images.paths[i].name for i in scene.splits["val"]] == [names[i] for i in expected["val"]]
+        assert len(scene.splits["val"]) == 3 and len(scene.splits["train"]) == 14
+    assert colmap.detect(tmp_path) == 0
+
+
+def test_bounds_contain_points(tmp_path):
+    scene = data_adapters.load(make_scene(tmp_path, "PINHOLE"))
+    assert 0 < scene.near < scene.far
+    inside = ((scene.points.xyz >= scene.aabb[0]) & (scene.points.xyz <= scene.aabb[1])).all(-1)
+    assert inside.float().mean() > 0.9
+    n, m = len(scene.cameras), len(scene.points.xyz)
+    cams = scene.cameras[torch.arange(n)[:, None].expand(n, m)]
+    _, z = cams.project(scene.points.xyz[None].expand(n, m, 3))
+    z = z[z > 0]
+    assert scene.near <= float(torch.quantile(z, 0.01)) and scene.far >= float(torch.quantile(z, 0.99))
+
+
+def test_colmap_mouse(scene_path):
+    root = scene_path("colmap_mouse")
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    scene = data_adapters.load(root)
+    images, w2c_ref = _reference(rec)
+    assert len(scene.cameras) == rec.num_reg_images() == len(images)
+    registered = {im.name for im in images}
+    assert len(list((root / "images").glob("*.jpg"))) > len(registered)  # unregistered files are skipped
+    assert {p.name for p in scene.images.paths} == registered
+    assert set(scene.camera_models) == {"PINHOLE"}
+    back = scene.world_from_input.inverse().apply_world_from_cam(scene.cameras.world_from_cam.double())
+    torch.testing.assert_close(back, w2c_ref, atol=1e-5 * float(w2c_ref[:, :3, 3].abs().max()), rtol=0)
+    for i, im in enumerate(images):
+        cam = rec.camera(im.camera_id)
+        assert (int(scene.cameras.width[i]), int(scene.cameras.height[i])) == (cam.width, cam.height)
+        assert float(scene.cameras.fx[i]) == pytest.approx(cam.params[0], rel=1e-6)
+    assert scene.points is not None and len(scene.points.xyz) == rec.num_points3D()
+    reported = rec.compute_mean_reprojection_error()
+    assert scene.meta["colmap_mean_reprojection_error"] == pytest.approx(reported, rel=1e-6)
+
+
+# ---------------------------------------------------------------- errors, each naming the file
+
+
+def _error(path) -> NerfpipeError:
+    with pytest.raises(NerfpipeError) as info:
+        data_adapters.load(path)
+    return info.value
+
+
+def test_error_empty_model(tmp_path):
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction().write_binary(str(tmp_path / "sparse" / "0"))
+    err = _error(tmp_path)
+    assert "no registered images" in err.problem and err.path == tmp_path / "sparse" / "0" / "images.bin"
+
+
+def test_error_unsupported_model(tmp_path):
+    err = _error(make_scene(tmp_path, "FULL_OPENCV"))
+    assert "FULL_OPENCV" in err.problem and err.path == tmp_path / "sparse" / "0" / "cameras.bin"
+
+
+def test_error_missing_image(tmp_path):
+    root = make_scene(tmp_path, "PINHOLE")
+    victim = sorted((root / "images").iterdir())[3]
+    victim.unlink()
+    err = _error(root)
+    assert "missing" in err.problem and err.path == victim
+
+
+def test_error_image_size_mismatch(tmp_path):
+    import imageio.v3 as iio
+
+    root = make_scene(tmp_path, "PINHOLE")
+    victim = sorted((root / "images").iterdir())[2]
+    iio.imwrite(victim, np.zeros((10, 20, 3), np.uint8))
+    err = _error(root)
+    assert "20x10" in err.problem and "64x48" in err.problem and err.path == victim
+
+
+def test_error_nan_pose(tmp_path):
+    rec = synthesize("PINHOLE")
+    frame = rec.frame(rec.reg_frame_ids()[0])
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation, np.array([np.nan, 0.0, 0.0]))
+    err = _error(write_scene(rec, tmp_path))
+    assert "non-finite pose" in err.problem and err.path == tmp_path / "sparse" / "0" / "images.bin"
+
+
+def test_error_unparsable_text_model(tmp_path):
+    root = make_scene(tmp_path, "PINHOLE", text=True)
+    path = root / "sparse" / "0" / "images.txt"
+    lines = path.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line and not line.startswith("#"))
+    parts = lines[i].split()
+    lines[i] = " ".join(parts[:5] + ["oops"] + parts[6:])  # TX is not a number
+    path.write_text("\n".join(lines) + "\n")
+    err = _error(root)
+    assert "cannot read COLMAP model" in err.problem and err.path == root / "sparse" / "0"
+
+
+def test_error_no_model(tmp_path):
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    (tmp_path / "sparse" / "0" / "cameras.bin").write_bytes(b"")
+    with pytest.raises(NerfpipeError) as info:
+        colmap.read(tmp_path)
+    assert "no COLMAP model" in info.value.problem and info.value.path == Path(tmp_path)

@@ -1,0 +1,91 @@
+"""Bad input on the command line: one error line naming the file, exit code 2, no traceback."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from nerfpipe.cli import main
+from nerfpipe.errors import NerfpipeError
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from colmap_synth import make_scene  # noqa: E402
+
+
+def _empty_model(root):
+    (root / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction().write_binary(str(root / "sparse" / "0"))
+    return root, root / "sparse" / "0" / "images.bin"
+
+
+def _unsupported_model(root):
+    return make_scene(root, "FULL_OPENCV", frames=3, points=20), root / "sparse" / "0" / "cameras.bin"
+
+
+def _missing_image(root):
+    make_scene(root, "PINHOLE", frames=3, points=20)
+    victim = sorted((root / "images").iterdir())[1]
+    victim.unlink()
+    return root, victim
+
+
+def _size_mismatch(root):
+    import imageio.v3 as iio
+
+    make_scene(root, "PINHOLE", frames=3, points=20)
+    victim = sorted((root / "images").iterdir())[0]
+    iio.imwrite(victim, np.zeros((8, 8, 3), np.uint8))
+    return root, victim
+
+
+def _nonexistent(root):
+    return root / "nope", root / "nope"
+
+
+def _unknown_format(root):
+    (root / "notes.txt").write_text("not a dataset")
+    return root, root
+
+
+CASES = {
+    "empty-model": _empty_model,
+    "unsupported-camera": _unsupported_model,
+    "missing-image": _missing_image,
+    "size-mismatch": _size_mismatch,
+    "nonexistent": _nonexistent,
+    "unknown-format": _unknown_format,
+}
+
+
+@pytest.mark.parametrize("command", ["info", "check"])
+@pytest.mark.parametrize("case", list(CASES))
+def test_one_line_error(tmp_path, capsys, case, command):
+    path, culprit = CASES[case](tmp_path)
+    assert main([command, str(path)]) == 2
+    err = capsys.readouterr().err
+    # Only nerfpipe's lines count: under pytest, beartype's import hook adds deprecation
+    # warnings (the subprocess test below checks that a real run prints nothing else).
+    lines = [line for line in err.splitlines() if line.startswith("nerfpipe")]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("nerfpipe: error: ") and str(culprit) in lines[0]
+    assert "Traceback" not in err
+
+
+def test_debug_raises(tmp_path):
+    """``--debug`` lets the exception (and so Python's traceback) through."""
+    with pytest.raises(NerfpipeError) as info:
+        main(["info", "--debug", str(tmp_path / "nope")])
+    assert info.value.path == tmp_path / "nope"
+
+
+def test_subprocess(tmp_path):
+    """The real entry point prints exactly one line on stderr and exits 2."""
+    path, culprit = _unsupported_model(tmp_path)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    cmd = [sys.executable, "-m", "nerfpipe", "info", str(path)]
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert run.stderr.strip().count("\n") == 0 and str(culprit) in run.stderr and "FULL_OPENCV" in run.stderr

@@ -1,0 +1,112 @@
+"""Cleaning and simplification: floaters, unseen faces, holes, quadric collapse, Hausdorff."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, visible_faces
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.mesh.views import look_at
+
+
+def sphere(radius=1.0, center=(0.0, 0.0, 0.0), subdivisions=4) -> TriangleMesh:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    colors = np.tile(np.array([[200, 30, 30]], np.uint8), (len(s.vertices), 1))
+    return TriangleMesh(s.vertices + np.asarray(center), s.faces, colors)
+
+
+def merge(*meshes: TriangleMesh) -> TriangleMesh:
+    offsets = np.cumsum([0] + [m.num_vertices for m in meshes[:-1]])
+    return TriangleMesh(
+        np.concatenate([m.vertices for m in meshes]),
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]),
+        np.concatenate([m.vertex_colors for m in meshes]),
+    )
+
+
+def ring_cameras(n=8, distance=4.0, size=64) -> Cameras:
+    mats = []
+    for k in range(n):
+        a, el = 2 * math.pi * k / n, (-0.5 if k % 2 else 0.6)
+        eye = distance * np.array([math.cos(a) * math.cos(el), math.sin(a) * math.cos(el), math.sin(el)])
+        mats.append(look_at(eye, np.zeros(3), np.array([0.0, 0, 1])))
+    f = size / (2 * math.tan(math.radians(25)))
+    return Cameras.create(np.stack(mats), f, f, size / 2, size / 2, size, size, dtype=torch.float64)
+
+
+def test_simplify_respects_the_target_and_bounds_the_hausdorff_distance():
+    full = sphere(subdivisions=5)  # 20480 faces
+    small = simplify(full, 2000)
+    assert small.num_faces <= 2000 and small.num_faces > 1500
+    assert small.vertex_colors is not None and (small.vertex_colors == [200, 30, 30]).all()
+    d = hausdorff_distance(full, small)
+    assert 0 < d["mean"] < d["max"] < 0.01  # unit sphere: well under 1% of the radius
+    assert small.to_trimesh().is_watertight
+
+
+def test_simplify_refuses_a_target_not_below_the_face_count():
+    m = sphere(subdivisions=2)
+    with pytest.raises(NerfpipeError, match="not below the mesh's 320 faces"):
+        simplify(m, 320)
+    with pytest.raises(NerfpipeError, match="at least 4"):
+        simplify(m, 2)
+
+
+def test_hausdorff_of_a_scaled_copy_is_the_offset():
+    a = sphere()
+    b = TriangleMesh(a.vertices * 1.05, a.faces)
+    d = hausdorff_distance(a, b)
+    assert d["max"] == pytest.approx(0.05, rel=0.05) and d["mean"] == pytest.approx(0.05, rel=0.1)
+
+
+def test_small_floaters_are_removed_and_the_object_kept():
+    obj, floater = sphere(1.0), sphere(0.03, center=(2.0, 0.0, 0.0), subdivisions=1)
+    out = remove_small_components(merge(obj, floater), min_diameter_fraction=0.05)
+    assert out.num_faces == obj.num_faces
+    assert out.info["floater_faces_removed"] == floater.num_faces
+    np.testing.assert_allclose(out.vertices.max(0), obj.vertices.max(0))
+
+
+def test_faces_no_camera_sees_are_found():
+    outer, inner = sphere(1.0), sphere(0.4, subdivisions=2)
+    seen = visible_faces(merge(outer, inner), ring_cameras())
+    assert seen[: outer.num_faces].mean() > 0.97
+    assert not seen[outer.num_faces :].any()
+
+
+def test_visibility_against_direct_rays_to_face_centres():
+    """Slow reference: one ray from each camera to each face centre; seen if nothing is hit first.
+
+    The z-buffer test may only add faces (it is lenient at silhouettes); it must never miss one.
+    """
+    import open3d as o3d
+
+    m, cams = sphere(1.0, subdivisions=3), ring_cameras(n=3, size=96)
+    fast = visible_faces(m, cams, tolerance=1e-3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(m.to_open3d_tensor())
+    centres = m.vertices[m.faces].mean(1)
+    slow = np.zeros(m.num_faces, bool)
+    for i in range(len(cams)):
+        eye = cams.centers[i].numpy()
+        dist = np.linalg.norm(centres - eye, axis=1)
+        rays = np.concatenate([np.tile(eye, (len(centres), 1)), (centres - eye) / dist[:, None]], 1)
+        t = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        slow |= t >= dist - 1e-3  # the sphere is inside every view (checked by the fast path's image test)
+    assert 0.8 * m.num_faces < slow.sum() < m.num_faces
+    assert not (slow & ~fast).any()
+    assert (fast & ~slow).sum() < 0.1 * m.num_faces
+
+
+def test_close_holes_makes_a_punctured_sphere_watertight():
+    m = sphere(subdivisions=3)
+    holed = m.submesh(~(m.faces == 0).any(axis=1))  # remove the fan around vertex 0: a pentagonal hole
+    assert not holed.to_trimesh().is_watertight
+    closed = close_holes(holed, max_hole_edges=30)
+    assert closed.to_trimesh().is_watertight and closed.num_faces == holed.num_faces + 3

@@ -1,0 +1,82 @@
+"""The ``sfm`` stage on real photos (a few downscaled Sceaux Castle frames), and another pipeline's
+in-memory pycolmap SfM handed over to nerfpipe's Python API."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nerfpipe.stages import Pipeline
+
+PHOTOS = ["100_7100.JPG", "100_7101.JPG", "100_7102.JPG", "100_7103.JPG"]
+MAX_SIZE = 400
+"""Longest side used in these tests (the photos are 2832x2128)."""
+FAST = {"max_image_size": MAX_SIZE, "max_num_features": 2048}
+
+
+def known_focal(root: Path, longest_side: int) -> float:
+    """fx of the photos' K.txt, scaled to images whose longest side is ``longest_side``."""
+    k = np.loadtxt(root / "K.txt")
+    return float(k[0, 0]) * longest_side / 2832
+
+
+@pytest.fixture(scope="module")
+def photos(scene_path, tmp_path_factory) -> Path:
+    """A folder with a few of the Sceaux photos (links), as a user would hand over."""
+    root = tmp_path_factory.mktemp("sceaux")
+    (root / "images").mkdir()
+    for name in PHOTOS:
+        (root / "images" / name).symlink_to(scene_path("photos_sceaux_castle") / "images" / name)
+    return root
+
+
+def test_sfm_stage_on_photos(photos, scene_path, tmp_path):
+    pipe = Pipeline(["sfm", "load", "check"], {"sfm": FAST})
+    result = pipe.run(photos, tmp_path)
+    assert [r.status for r in result.records] == ["ran", "ran", "ran"]
+    summary = json.loads((tmp_path / "sfm" / "sfm.json").read_text())
+    assert summary["num_photos"] == len(PHOTOS) and summary["num_registered"] >= 3
+    assert summary["num_registered"] == result["sfm_reconstruction"].num_reg_images()
+    (camera,) = summary["cameras"]  # one shared camera: all photos have the same size and model
+    assert camera["model"] == "SIMPLE_RADIAL" and max(camera["width"], camera["height"]) == MAX_SIZE
+    assert camera["params"][0] == pytest.approx(known_focal(scene_path("photos_sceaux_castle"), MAX_SIZE), rel=0.1)
+    undistorted = result["sfm_reconstruction"]
+    assert {c.model.name for c in undistorted.cameras.values()} == {"PINHOLE"}
+    scene = result["scene"]
+    assert len(scene.cameras) == summary["num_registered"] and scene.points is not None
+    assert result["check"]["failures"] == []
+    assert not (tmp_path / "sfm.work" / "images" / PHOTOS[0]).is_symlink()  # downscaled copies, not the originals
+
+
+def test_sfm_not_needed_for_a_dataset(scene_path, tmp_path):
+    result = Pipeline(["sfm", "load"]).run(scene_path("colmap_mouse"), tmp_path)
+    assert [r.status for r in result.records] == ["not needed", "ran"]
+    assert not (tmp_path / "sfm").exists()
+
+
+def test_another_pipelines_reconstruction_is_handed_over(photos, tmp_path):
+    """pycolmap SfM run by the caller; nerfpipe gets the Reconstruction object and the image folder."""
+    import pycolmap
+
+    from plugins.sfm import prepare_images
+
+    images = tmp_path / "small"
+    prepare_images(sorted((photos / "images").iterdir()), images, MAX_SIZE)
+    db = tmp_path / "db.db"
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.sift.max_num_features, ext.num_threads = 2048, 2
+    pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=ext)
+    pycolmap.match_exhaustive(db)
+    models = pycolmap.incremental_mapping(db, images, tmp_path / "sparse")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+
+    result = Pipeline(["load", "check"]).run(None, tmp_path / "run", cache={"reconstruction": rec, "images": images})
+    scene = result["scene"]
+    assert len(scene.cameras) == rec.num_reg_images() and scene.camera_models == ["SIMPLE_RADIAL"] * len(scene.cameras)
+    assert result["check"]["failures"] == []
+    by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
+    centres = np.stack([by_name[p.name].projection_center() for p in scene.images.paths])
+    norm = scene.world_from_input
+    assert np.allclose(norm.apply_points(torch.from_numpy(centres)).numpy(), scene.cameras.centers.numpy(), atol=1e-4)
