@@ -7,6 +7,10 @@ Layers (lower never imports upper):
 3. orchestration: ``nerfpipe.commands``, stages in ``plugins/``, the CLI.
 """
 
+# pycolmap's wheel exports its own zlib symbols; when it is imported before Python's zlib, later
+# PNG writes abort the process. Loading zlib first makes the order safe for every nerfpipe user.
+import zlib  # noqa: F401  (import-order guard, see above)
+
 from nerfpipe.cameras import Cameras, invert_rigid, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.functional.distortion import Distortion

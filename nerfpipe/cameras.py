@@ -129,6 +129,14 @@ class Cameras:
             out[f.name] = v.to(device=device, dtype=dtype) if (dtype is not None and v.is_floating_point()) else v.to(device)
         return Cameras(**out)
 
+    def expand(self, *shape: int) -> "Cameras":
+        """Broadcast a batch of shape ``()`` to ``shape`` without copying (views)."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.expand(*shape, *v.shape[len(self.shape):])
+        return Cameras(**out)
+
     def reshape(self, *shape: int) -> "Cameras":
         out = {}
         for f in fields(self):

@@ -29,6 +29,8 @@ def _commands() -> dict:
         "run": run.run,
         "stage": run.stage,
         "stages": run.list_stages,
+        "eval-mesh": __import__("nerfpipe.commands.eval_mesh", fromlist=["eval_mesh"]).eval_mesh,
+        "mesh": __import__("nerfpipe.commands.mesh", fromlist=["mesh"]).mesh,
     }
 
 

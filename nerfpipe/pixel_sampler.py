@@ -13,7 +13,7 @@ import torch
 
 from nerfpipe.rays import RayBundle, generate_rays
 from nerfpipe.scene import SceneData
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.typing import Float, Tensor, UInt8
 
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
 
@@ -25,7 +25,7 @@ def background_colors(mode: str, n: int, generator: "torch.Generator | None" = N
     return torch.tensor(BACKGROUNDS[mode], device=device).expand(n, 3)
 
 
-def composite_pixels(pixels: Tensor, background: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+def composite_pixels(pixels: UInt8[Tensor, "*bs C"], background: Float[Tensor, "*bg 3"]) -> Float[Tensor, "*bs 3"]:
     """uint8 RGB(A) ``[*bs, C]`` -> float RGB in [0, 1], alpha composited on ``background``."""
     rgb = pixels[..., :3].float() / 255.0
     if pixels.shape[-1] == 4:

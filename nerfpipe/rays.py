@@ -95,8 +95,15 @@ def generate_rays(cameras: Cameras, cam_idx: Int[Tensor, "*bs"], uv: Float[Tenso
 
 
 def camera_rays(cameras: Cameras, index: int) -> RayBundle:
-    """All rays of one camera, shaped ``[H, W]``."""
+    """All rays of one camera, shaped ``[H, W]`` (the camera is broadcast, not copied per pixel)."""
     h, w = int(cameras.height[index]), int(cameras.width[index])
+    cam = cameras[index]
     uv = pixel_centers(h, w, device=cameras.device, dtype=cameras.fx.dtype)
-    idx = torch.full((h, w), index, dtype=torch.long, device=cameras.device)
-    return generate_rays(cameras, idx, uv)
+    xy = cam.expand(h, w).pixel_to_normalized(uv)
+    d_cam = F.normalize(torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1), dim=-1)
+    return RayBundle(
+        origins=cam.world_from_cam[:3, 3].expand(h, w, 3).clone(),
+        directions=d_cam @ cam.world_from_cam[:3, :3].T,
+        cam_idx=torch.full((h, w), index, dtype=torch.long, device=cameras.device),
+        z_scale=d_cam[..., 2],
+    )

@@ -124,7 +124,8 @@ def read_image_uint8(path: Path) -> np.ndarray:
     try:
         img = np.asarray(iio.imread(path))
     except Exception as exc:  # imageio raises many types for corrupt files
-        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {exc})", path) from None
+        first_line = (str(exc).strip().splitlines() or [""])[0]  # imageio's messages span many lines
+        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {first_line})", path) from None
     if img.dtype == np.uint16:
         img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
     elif img.dtype != np.uint8:

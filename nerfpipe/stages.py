@@ -15,8 +15,9 @@ Run folder layout::
 
 Resume rule: :meth:`Pipeline.run` skips the leading stages whose marker exists with the same
 config hash, is newer than the markers of the stages before it, and whose artifacts are all on
-disk; from the first stage that has to run, every later stage runs too. A stage interrupted half-way leaves neither a marker nor a half-written
-artifact (markers are written after the artifacts, both by ``os.replace``).
+disk; from the first stage that has to run, every later stage runs too. A stage interrupted
+half-way leaves neither a marker nor a half-written artifact (markers are written after the
+artifacts, both by ``os.replace``); the temporaries of a killed run are swept by the next one.
 
 Glossary:
     artifact  a named output; ``produces`` lists the ones a stage must leave on disk
@@ -176,8 +177,12 @@ def _remove(p: Path) -> None:
 
 
 def sweep_temporaries(run_dir: Path) -> None:
-    """Remove the temporaries of writes that were killed before they finished (symlinks not followed)."""
-    for p in sorted(Path(run_dir).rglob(f"{TMP_PREFIX}*"), key=lambda p: -len(p.parts)):
+    """Remove the temporaries of writes that were killed before they finished (symlinks not followed).
+
+    Both this module's ``.tmp-*`` and :func:`nerfpipe.runs.atomic_write_bytes`' ``.<name>.tmp<pid>``.
+    """
+    found = [*Path(run_dir).rglob(f"{TMP_PREFIX}*"), *Path(run_dir).rglob(".*.tmp[0-9]*")]
+    for p in sorted(set(found), key=lambda p: -len(p.parts)):
         _remove(p)
 
 
@@ -217,15 +222,21 @@ def config_hash(config: object) -> str:
 
 def make_config(spec: StageSpec, values: "dict | None", where: "str | Path | None" = None) -> object:
     """The stage's config with ``values`` (from TOML or a dict) applied; unknown keys are errors."""
-    values = dict(values or {})
-    names = {f.name: f for f in dataclasses.fields(spec.config)}
+    return _apply(spec.config(), values or {}, f"stage '{spec.name}'", where)
+
+
+def _apply(default: object, values: dict, what: str, where: "str | Path | None") -> object:
+    """``default`` with ``values`` replaced; nested config dataclasses take nested tables."""
+    names = [f.name for f in dataclasses.fields(default)]
     unknown = sorted(set(values) - set(names))
     if unknown:
-        raise NerfpipeError(f"stage '{spec.name}' has no option {unknown[0]!r} (options: {', '.join(names)})", where)
-    default = spec.config()
+        raise NerfpipeError(f"{what} has no option {unknown[0]!r} (options: {', '.join(names)})", where)
+    values = dict(values)
     for key, value in values.items():
         current = getattr(default, key)
-        if isinstance(current, tuple) and isinstance(value, list):
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            values[key] = _apply(current, value, f"{what} option '{key}'", where)
+        elif isinstance(current, tuple) and isinstance(value, list):
             values[key] = tuple(value)
         elif isinstance(current, Path) and isinstance(value, str):
             values[key] = Path(value)
@@ -277,9 +288,13 @@ class Pipeline:
     """An ordered chain of stages with one config each.
 
     Example:
-        >>> p = Pipeline(["load", "check"])  # doctest: +SKIP
+        >>> p = Pipeline(["load", "check", "export"], {"check": {"samples": 4}})  # doctest: +SKIP
         >>> result = p.run("data/colmap_mouse", "runs/mouse")  # doctest: +SKIP
-        >>> result["scene.json"].cameras.shape  # doctest: +SKIP
+        >>> result["scene"].cameras.shape, result["export/transforms.json"]  # doctest: +SKIP
+
+        Another pipeline's SfM result, handed over in memory (no file written by the caller):
+
+        >>> result = p.run(None, "runs/x", reconstruction=rec, images="photos/")  # doctest: +SKIP
     """
 
     def __init__(
@@ -309,7 +324,18 @@ class Pipeline:
 
     @classmethod
     def from_toml(cls, path: "str | Path", registry: "dict[str, StageSpec] | None" = None) -> "Pipeline":
-        """Read ``stages = [...]`` and one ``[<stage name>]`` table of options per stage."""
+        """Read ``stages = [...]`` and one ``[<stage name>]`` table of options per stage.
+
+        Example file (nested config dataclasses take nested tables)::
+
+            stages = ["sfm", "load", "check", "train", "render"]
+            [sfm]
+            max_image_size = 1600
+            [train]
+            model = "vanilla"
+            [train.trainer]
+            iters = 2000
+        """
         path = Path(path)
         try:
             doc = tomllib.loads(path.read_text())
@@ -355,22 +381,36 @@ class Pipeline:
         device: str = "cpu",
         time_budget: "float | None" = None,
         on_stage: "Callable[[StageRecord], None] | None" = None,
+        reconstruction: object = None,
+        images: "str | Path | dict | None" = None,
     ) -> PipelineResult:
         """Run the chain in ``run_dir``, skipping stages finished before when ``resume``.
 
         Args:
-            source: the input dataset (None when ``cache`` holds the input, e.g. ``reconstruction``).
+            source: the input dataset; None when the input comes in memory.
             run_dir: the run folder (created).
             resume: skip the leading stages that finished with the same config.
-            cache: in-memory inputs and artifacts handed to the stages.
+            cache: in-memory inputs and artifacts handed to the stages (e.g. ``scene``).
+            device: torch device for the stages that compute.
+            time_budget: seconds the whole run may take; stages read :meth:`StageContext.time_left`.
             on_stage: called after each stage with its record (for progress output).
+            reconstruction: an in-memory ``pycolmap.Reconstruction`` to use as the input.
+            images: its images: a folder, or ``{image name: uint8 array [H, W, 3]}``.
         """
-        ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=dict(cache or {}))
+        cache = dict(cache or {})
+        cache.update({k: v for k, v in (("reconstruction", reconstruction), ("images", images)) if v is not None})
+        ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=cache)
         ctx.run_dir.mkdir(parents=True, exist_ok=True)
         sweep_temporaries(ctx.run_dir)
         _check_run_record(ctx, self.names, resume)
         self.validate(ctx)
-        records, t0, running, last = [], time.monotonic(), not resume, 0.0
+        t0 = time.monotonic()
+        records = self._run_chain(ctx, resume, on_stage)
+        names = [a for s in self.specs for a in s.produces + s.provides]
+        return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
+
+    def _run_chain(self, ctx: StageContext, resume: bool, on_stage) -> "list[StageRecord]":
+        records, running, last = [], not resume, 0.0
         for spec in self.specs:
             config = self.configs[spec.name]
             done = None if running else is_done(ctx, spec, config, after=last)
@@ -385,8 +425,7 @@ class Pipeline:
             records.append(rec)
             if on_stage is not None:
                 on_stage(rec)
-        names = [a for s in self.specs for a in s.produces + s.provides]
-        return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
+        return records
 
 
 def _as_config(spec: StageSpec, value: object) -> object:

@@ -134,7 +134,9 @@ class View:
 
 
 # ---------------------------------------------------------------------------- scenes
-def _pattern(points: Float[np.ndarray, "num_points 3"], period: float, phase: Float[np.ndarray, "3"]) -> Float[np.ndarray, "num_points"]:
+def _pattern(
+    points: Float[np.ndarray, "num_points 3"], period: float, phase: Float[np.ndarray, "3"]
+) -> Float[np.ndarray, "num_points"]:
     """Smooth plaid in [0, 1]: varies along every planar face and over curved parts."""
     k = 2 * math.pi / period
     return 0.5 + np.sin(k * points + phase).sum(-1) / 6
@@ -199,7 +201,9 @@ SCENES = {"composite": composite_scene, "sphere": sphere_scene}
 
 
 # ---------------------------------------------------------------------------- cameras
-def look_at(centers: Float[Tensor, "*bs 3"], target: Float[Tensor, "3"], up: Float[Tensor, "3"]) -> Float[Tensor, "*bs 4 4"]:
+def look_at(
+    centers: Float[Tensor, "*bs 3"], target: Float[Tensor, "3"], up: Float[Tensor, "3"]
+) -> Float[Tensor, "*bs 4 4"]:
     """OpenCV ``world_from_cam`` of cameras at ``centers`` looking at ``target``, image up ~ ``up``."""
     z = torch.nn.functional.normalize(target - centers, dim=-1)
     x = torch.nn.functional.normalize(torch.linalg.cross(z, up.expand_as(z)), dim=-1)
@@ -225,9 +229,9 @@ def orbit_cameras(cfg: SynthConfig) -> Cameras:
     centers = cfg.distance * torch.stack([r * torch.cos(azimuth), r * torch.sin(azimuth), z], dim=-1)
     zero, up = torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     focal = 0.5 * cfg.width / math.tan(0.5 * cfg.camera_angle_x)
-    return Cameras.create(
-        look_at(centers, zero, up), focal, focal, cfg.width / 2, cfg.height / 2, cfg.width, cfg.height, dtype=torch.float64
-    )
+    world_from_cam = look_at(centers, zero, up)
+    cx, cy = cfg.width / 2, cfg.height / 2
+    return Cameras.create(world_from_cam, focal, focal, cx, cy, cfg.width, cfg.height, dtype=torch.float64)
 
 
 # ---------------------------------------------------------------------------- rendering
@@ -254,7 +258,9 @@ def cast(scene, origins: Float[np.ndarray, "num_points 3"], directions: Float[np
     return t, face, bary
 
 
-def shade(mesh: SynthMesh, face: Int[np.ndarray, "num_points"], bary: Float[np.ndarray, "num_points 3"]) -> Float[np.ndarray, "num_points 3"]:
+def shade(
+    mesh: SynthMesh, face: Int[np.ndarray, "num_points"], bary: Float[np.ndarray, "num_points 3"]
+) -> Float[np.ndarray, "num_points 3"]:
     """Lambertian colour of surface points given by triangle and barycentric weights."""
     tri = mesh.faces[face]
     albedo = (mesh.colors[tri] * bary[..., None]).sum(1)
@@ -300,7 +306,7 @@ class SparsePoints:
 
 
 def sample_points(scene, mesh: SynthMesh, cameras: Cameras, cfg: SynthConfig) -> SparsePoints:
-    """Sample the surface evenly; keep points seen unoccluded in ``min_track_length`` views."""
+    """Sample the surface uniformly by area; keep points seen unoccluded in ``min_track_length`` views."""
     trimesh = require("trimesh", "mesh")
     xyz, face = trimesh.sample.sample_surface(mesh.to_trimesh(), cfg.num_points, seed=cfg.seed)
     tri = mesh.vertices[mesh.faces[face]]
@@ -372,8 +378,22 @@ def colmap_reconstruction(cameras: Cameras, points: SparsePoints):
     """A ``pycolmap.Reconstruction``: PINHOLE cameras (shared when equal), trivial rigs/frames, tracks."""
     pycolmap = require("pycolmap", "colmap")
     rec = pycolmap.Reconstruction()
-    cam_from_world = cameras.cam_from_world.numpy()
+    _add_images(rec, cameras, points)
     point2d_idx = np.cumsum(points.visible, axis=0) - 1  # index of each observation in its image
+    for p in range(len(points.xyz)):
+        track = pycolmap.Track()
+        for v in np.flatnonzero(points.visible[p]):
+            track.add_element(int(v) + 1, int(point2d_idx[p, v]))
+        rgb = np.round(points.rgb[p] * 255).astype(np.uint8)
+        rec.add_point3D(points.xyz[p].astype(np.float64), track, rgb)
+    rec.update_point_3d_errors()
+    return rec
+
+
+def _add_images(rec, cameras: Cameras, points: SparsePoints) -> None:
+    """Image ``v`` gets id ``v + 1`` and keypoints = the observations of the points it sees."""
+    pycolmap = require("pycolmap", "colmap")
+    cam_from_world = cameras.cam_from_world.numpy()
     camera_ids: "dict[tuple, int]" = {}
     for v in range(len(cameras)):
         intr = tuple(float(getattr(cameras, k)[v]) for k in ("fx", "fy", "cx", "cy", "width", "height"))
@@ -383,17 +403,10 @@ def colmap_reconstruction(cameras: Cameras, points: SparsePoints):
             cam.params = list(intr[:4])
             rec.add_camera_with_trivial_rig(cam)
         keypoints = points.uv[points.visible[:, v], v].astype(np.float64).reshape(-1, 2)
-        image = pycolmap.Image(name=f"{view_name(v)}.png", keypoints=keypoints, camera_id=camera_ids[intr], image_id=v + 1)
+        name = f"{view_name(v)}.png"
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_ids[intr], image_id=v + 1)
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world[v, :3, :3]), cam_from_world[v, :3, 3])
         rec.add_image_with_trivial_frame(image, pose)
-    for p in range(len(points.xyz)):
-        track = pycolmap.Track()
-        for v in np.flatnonzero(points.visible[p]):
-            track.add_element(int(v) + 1, int(point2d_idx[p, v]))
-        rgb = np.round(points.rgb[p] * 255).astype(np.uint8)
-        rec.add_point3D(points.xyz[p].astype(np.float64), track, rgb)
-    rec.update_point_3d_errors()
-    return rec
 
 
 # ---------------------------------------------------------------------------- top level
@@ -483,7 +496,7 @@ def _check_target(out: Path, overwrite: bool) -> None:
         raise NerfpipeError(f"refusing to replace a folder without {SCENE_FILE} (not a synthetic scene)", out)
 
 
-def load_mesh_input_frame(path: "str | Path"):
+def load_gt_mesh(path: "str | Path"):
     """The ground-truth mesh of a generated scene (``trimesh.Trimesh``, input frame)."""
     trimesh = require("trimesh", "mesh")
     path = Path(path)

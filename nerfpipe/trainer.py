@@ -96,6 +96,7 @@ class Trainer:
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # rows: [step, seconds, psnr(, ssim)]
         self.hooks = self.model.callbacks()
+        self.torch_rng = torch.get_rng_state()  # jitter stream of this run, independent of other trainers
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
@@ -155,9 +156,13 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         if self.cfg.resume and (self.out / CHECKPOINT).is_file():
             self.load_state(torch.load(self.out / CHECKPOINT, map_location=self.cfg.device, weights_only=False))
+        else:
+            torch.set_rng_state(self.torch_rng)
         self.write_config()
         self.model.train()
         with TrainProgress(self.cfg, self.step, self.train_seconds) as bar:
+            if self.step == 0 and self.cfg.eval_every:
+                evaluation.validate(self, self.cfg.eval_views)  # the starting point of the curves
             while not self.done():
                 t0 = time.perf_counter()
                 mse = self.train_step()

@@ -35,6 +35,7 @@ def run(config: CheckConfig, ctx: StageContext) -> "dict[str, object]":
         write_json(ctx.path("check.failed.json"), figures)
         raise NerfpipeError("camera conventions are broken: " + "; ".join(report.failures), ctx.path("check.failed.json"))
     write_json(ctx.path(CHECK_JSON), figures)
+    ctx.path("check.failed.json").unlink(missing_ok=True)
     return {"check": figures}
 
 

@@ -49,3 +49,32 @@ def pdf_samples_loop(bins: list, weights: list, us: list, eps: float = 1e-5) -> 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return -10 * math.log10(float(torch.mean((a - b) ** 2)))
+
+
+def trilinear_loop(table: torch.Tensor, res: "tuple[int, int, int]", x01: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation point by point and corner by corner (vertex ``(i, j, k)`` at ``(i, j, k) / (res - 1)``)."""
+    out = torch.zeros(x01.shape[0], table.shape[1], dtype=table.dtype)
+    for n in range(x01.shape[0]):
+        pos = [float(x01[n, a].clamp(0, 1)) * (res[a] - 1) for a in range(3)]
+        lo = [min(int(math.floor(p)), res[a] - 2) for a, p in enumerate(pos)]
+        for di in (0, 1):
+            for dj in (0, 1):
+                for dk in (0, 1):
+                    w = 1.0
+                    for a, d in enumerate((di, dj, dk)):
+                        f = pos[a] - lo[a]
+                        w *= f if d else 1 - f
+                    row = ((lo[0] + di) * res[1] + lo[1] + dj) * res[2] + lo[2] + dk
+                    out[n] = out[n] + w * table[row]
+    return out
+
+
+def distortion_loop(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor) -> torch.Tensor:
+    """Mip-NeRF 360 distortion loss of one ray by its double sum definition."""
+    mids = 0.5 * (t_starts + t_ends)
+    total = torch.zeros((), dtype=weights.dtype)
+    for i in range(len(weights)):
+        for j in range(len(weights)):
+            total = total + weights[i] * weights[j] * (mids[i] - mids[j]).abs()
+        total = total + weights[i] ** 2 * (t_ends[i] - t_starts[i]) / 3
+    return total

@@ -168,3 +168,17 @@ def test_auto_normalization_centres_scales_and_uprights():
     near, far, aabb = bounds_from_cameras(new)
     assert 0 < near < TARGET_CAMERA_DISTANCE < far
     assert torch.all(aabb[0] < 0) and torch.all(aabb[1] > 0)
+
+
+def test_camera_rays_equals_generate_rays():
+    gen = torch.Generator().manual_seed(4)
+    cams = Cameras.create(torch.stack([random_pose(gen), random_pose(gen)]), 90.0, 95.0, 30.0, 20.0, [64, 40], [48, 30],
+                          distortion=torch.tensor([1, 2]), dist_params=torch.tensor([[-0.1, 0.02, 0.001, 0.0], [0.05, -0.01, 0.0, 0.0]]),
+                          dtype=torch.float64)
+    for i in range(2):
+        fast = camera_rays(cams, i)
+        h, w = int(cams.height[i]), int(cams.width[i])
+        slow = generate_rays(cams, torch.full((h * w,), i), pixel_centers(h, w, dtype=torch.float64).reshape(-1, 2))
+        torch.testing.assert_close(fast.directions.reshape(-1, 3), slow.directions)
+        torch.testing.assert_close(fast.origins.reshape(-1, 3), slow.origins)
+        torch.testing.assert_close(fast.z_scale.reshape(-1), slow.z_scale)

@@ -58,8 +58,10 @@ def test_sfm_not_needed_for_a_dataset(scene_path, tmp_path):
 
 def test_another_pipelines_reconstruction_is_handed_over(photos, tmp_path):
     """pycolmap SfM run by the caller; nerfpipe gets the Reconstruction object and the image folder."""
+    import imageio.v3 as iio
     import pycolmap
 
+    import data_adapters
     from plugins.sfm import prepare_images
 
     images = tmp_path / "small"
@@ -72,10 +74,14 @@ def test_another_pipelines_reconstruction_is_handed_over(photos, tmp_path):
     models = pycolmap.incremental_mapping(db, images, tmp_path / "sparse")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
 
-    result = Pipeline(["load", "check"]).run(None, tmp_path / "run", cache={"reconstruction": rec, "images": images})
+    arrays = {p.name: iio.imread(p) for p in sorted(images.iterdir())}  # the images in memory too
+    result = Pipeline(["load", "check", "export"]).run(None, tmp_path / "run", reconstruction=rec, images=arrays)
     scene = result["scene"]
     assert len(scene.cameras) == rec.num_reg_images() and scene.camera_models == ["SIMPLE_RADIAL"] * len(scene.cameras)
     assert result["check"]["failures"] == []
+    exported = data_adapters.load(result["export/transforms.json"])  # OPENCV distortion in nerfstudio's format
+    assert torch.equal(exported.cameras.dist_params, scene.cameras.dist_params)
+    assert torch.equal(exported.cameras.fx, scene.cameras.fx) and scene.cameras.has_distortion()
     by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
     centres = np.stack([by_name[p.name].projection_center() for p in scene.images.paths])
     norm = scene.world_from_input

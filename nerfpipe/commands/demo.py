@@ -21,7 +21,7 @@ def demo(out: Optional[str] = None, views: int = 48, seed: int = 0) -> int:
 
     path = out if out is not None else tempfile.mkdtemp(prefix="nerfpipe-demo-")
     result = generate(path, SynthConfig(layout="colmap", views=views, seed=seed), overwrite=out is not None)
-    print(f"synthetic scene: {result.path} ({views} views, {result.num_points} sparse points, mesh {result.path / 'gt_mesh.ply'})")
+    print(f"synthetic scene: {result.path} ({views} views, {result.num_points} sparse points, gt_mesh.ply)")
     scene = data_adapters.load(result.path)
     print_table(f"info: {result.path}", summarize(scene))
     report = check_scene(scene)

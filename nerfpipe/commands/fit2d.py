@@ -38,7 +38,7 @@ def fit2d(
         image: image file; default: scikit-image's astronaut photograph.
         out: output folder (psnr.png, progress.png, final.png, metrics.json; sweep.* with --sweep).
         preset: ``course`` (positional encoding L=10, 4×256 MLP, 10k pixels/step) or ``fast``
-            (multiresolution grid + tiny MLP, all pixels/step). Flags below override the preset.
+            (multiresolution grid + tiny MLP, 8k pixels/step). Flags below override the preset.
         iterations: Adam steps.
         lr: Adam learning rate.
         lr_final_factor: decay the learning rate exponentially to lr × this by the end.

@@ -12,9 +12,12 @@ Positional = tyro.conf.Positional
 
 
 def _console():
+    """Rich console on stdout; 120 columns when not a terminal (logs, pipes, tests)."""
+    import sys
+
     from rich.console import Console
 
-    return Console(stderr=False, highlight=False)
+    return Console(highlight=False, width=None if sys.stdout.isatty() else 120)
 
 
 def _log_to(console) -> None:
@@ -29,12 +32,18 @@ def _log_to(console) -> None:
 
 def installed_stages(console) -> dict:
     """Discover stages; broken plugins are printed as one warning line each, not raised."""
-    from nerfpipe.registry import PluginWarning
     from nerfpipe.stages import stages
+
+    return _reporting(console, stages)
+
+
+def _reporting(console, find):
+    """``find()`` with its PluginWarnings printed as one line each (other warnings re-raised)."""
+    from nerfpipe.registry import PluginWarning
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PluginWarning)
-        found = stages()
+        found = find()
     for w in caught:
         if issubclass(w.category, PluginWarning):
             console.print(f"[yellow]warning:[/] {w.message}")
@@ -53,6 +62,18 @@ def _summary_table(result):
         table.add_row(rec.name, rec.status, f"{rec.seconds:.1f}", ", ".join(rec.artifacts))
     table.add_row("total", "", f"{result.seconds:.1f}", "", end_section=True)
     return table
+
+
+def _figures(run_dir: Path) -> "list[str]":
+    """One line per headline figure found in the run folder (SfM, check, training)."""
+    lines, read = [], lambda p: json.loads(p.read_text()) if p.is_file() else None  # noqa: E731
+    if (sfm := read(run_dir / "sfm" / "sfm.json")) is not None:
+        lines.append(f"sfm: {sfm['num_registered']} of {sfm['num_photos']} photos registered, {sfm['num_points3D']} points")
+    if (check := read(run_dir / "check.json")) is not None:
+        lines.append(f"check: {check['num_cameras']} cameras, conventions consistent (kornia {check['kornia_max_px']:.1e} px)")
+    if (metrics := read(run_dir / "train" / "metrics.json")) is not None:
+        lines.append(f"train: val PSNR {metrics['val_psnr']:.2f} dB after {metrics['iterations']} iterations")
+    return lines
 
 
 def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict):
@@ -94,6 +115,8 @@ def run(
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
     result = pipe.run(path, run_dir, resume=resume, device=device, time_budget=time_budget)
     console.print(_summary_table(result))
+    for line in _figures(result.run_dir):
+        console.print(line)
     return 0
 
 
@@ -123,15 +146,25 @@ def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]
 
 
 def list_stages() -> int:
-    """List the installed stages (built-in and plugins); broken plugins are reported and skipped."""
+    """List the installed plugins: stages, data adapters and models; broken ones are reported and skipped."""
     from rich.table import Table
 
+    from data_adapters import adapters
+    from nerfpipe.models.registry import models
+
     console = _console()
-    table = Table(title="installed stages")
+    table = Table(title="stages (nerfpipe.stages)")
     for col in ("name", "description", "requires", "produces", "module"):
         table.add_column(col)
     for name, spec in sorted(installed_stages(console).items()):
         produces = ", ".join(spec.produces + spec.provides)
         table.add_row(name, spec.description, ", ".join(spec.requires), produces, spec.run.__module__)
     console.print(table)
+    for title, found in (("data adapters (nerfpipe.data_adapters)", adapters), ("models (nerfpipe.models)", models)):
+        small = Table(title=title)
+        small.add_column("name")
+        small.add_column("description")
+        for name, spec in sorted(_reporting(console, found).items()):
+            small.add_row(name, spec.description)
+        console.print(small)
     return 0

@@ -43,7 +43,9 @@ def synth(
     from nerfpipe.synthetic import SynthConfig, generate
 
     width, height = parse_size(size)
-    cfg = SynthConfig(scene=scene, layout=layout, views=views, width=width, height=height, seed=seed, save_depth=save_depth)
+    cfg = SynthConfig(
+        scene=scene, layout=layout, views=views, width=width, height=height, seed=seed, save_depth=save_depth
+    )
     start = time.perf_counter()
     result = generate(out, cfg, overwrite=overwrite)
     seconds = time.perf_counter() - start

@@ -73,7 +73,6 @@ class GridEncoder(nn.Module):
         self.register_buffer("size", sizes, persistent=False)
         self.register_buffer("offset", torch.cumsum(sizes, 0) - sizes, persistent=False)
         self.register_buffer("stride", (res[:, None] + 1) ** torch.arange(in_dim), persistent=False)
-        self.register_buffer("corner_bits", _corner_bits(in_dim), persistent=False)
         self.register_buffer("primes", torch.tensor(_PRIMES[:in_dim], dtype=torch.long), persistent=False)
         table = torch.empty(int(sizes.sum()), config.features_per_level)
         self.table = nn.Parameter(table.uniform_(-config.init_scale, config.init_scale))
@@ -90,23 +89,25 @@ class GridEncoder(nn.Module):
         return out.reshape(n, levels * self.config.features_per_level)
 
     def corners(self, x: Float[Tensor, "N D"]) -> tuple[Int[Tensor, "N levels C"], Float[Tensor, "N levels C"]]:
-        """Table rows and (multi)linear weights of the ``C = 2^D`` cell corners at every level."""
+        """Table rows and (multi)linear weights of the ``C = 2^D`` cell corners at every level.
+
+        Per-dimension terms (``[N, levels, 2, D]``) are combined dimension by dimension, so the
+        full ``[N, levels, C, D]`` corner coordinates are never materialised.
+        """
         pos = x.clamp(0.0, 1.0)[:, None, :] * self.resolution[:, None].to(x.dtype)  # [N, levels, D]
         cell = torch.minimum(pos.detach().floor().long(), self.resolution[:, None] - 1)
         frac = pos - cell.to(x.dtype)
-        bits = self.corner_bits  # [C, D]
-        vert = cell[:, :, None, :] + bits  # [N, levels, C, D]
-        w = torch.where(bits.bool(), frac[:, :, None, :], 1.0 - frac[:, :, None, :]).prod(-1)
-        return self._vertex_rows(vert), w
-
-    def _vertex_rows(self, vert: Int[Tensor, "N levels C D"]) -> Int[Tensor, "N levels C"]:
-        dense = (vert * self.stride[:, None, :]).sum(-1)
-        scrambled = vert * self.primes
-        hashed = scrambled[..., 0]
+        vert = cell[:, :, None, :] + torch.arange(2, device=x.device)[:, None]  # [N, levels, 2, D]
+        dense_t, hash_t = vert * self.stride[:, None, :], vert * self.primes
+        weight_t = torch.stack([1.0 - frac, frac], dim=-2)
+        dense, hashed, w = dense_t[..., 0], hash_t[..., 0], weight_t[..., 0]
         for d in range(1, self.in_dim):
-            hashed = torch.bitwise_xor(hashed, scrambled[..., d])
-        hashed = hashed % self.size[:, None]
-        return torch.where(self.hashed[:, None], hashed, dense) + self.offset[:, None]
+            dense = (dense[..., :, None] + dense_t[..., None, :, d]).flatten(-2)
+            hashed = torch.bitwise_xor(hashed[..., :, None], hash_t[..., None, :, d]).flatten(-2)
+            w = (w[..., :, None] * weight_t[..., None, :, d]).flatten(-2)
+        hashed = torch.bitwise_and(hashed, self.size[:, None] - 1)  # hashed levels have 2^k rows
+        rows = torch.where(self.hashed[:, None], hashed, dense) + self.offset[:, None]
+        return rows, w
 
     def _reference_forward(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N E"]:
         """Slow reference: per level, per corner, explicit vertex index and weight products."""
@@ -170,7 +171,3 @@ class _WeightedGather(torch.autograd.Function):
         if ctx.needs_input_grad[2]:
             grad_w = (table[idx] * grad_out[:, None, :]).sum(-1)
         return grad_table, None, grad_w
-
-
-def _corner_bits(dim: int) -> Int[Tensor, "C D"]:
-    return torch.tensor(list(itertools.product((0, 1), repeat=dim)), dtype=torch.long).flip(-1)

@@ -13,7 +13,7 @@ Glossary:
 """
 
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -29,7 +29,7 @@ class OccupancyGridConfig:
     """Cells per axis."""
     update_every: int = 16
     """Refresh the grid every this many training steps."""
-    warmup_steps: int = 64
+    warmup_steps: int = 16
     """Steps before the first refresh (every cell counts as occupied until then)."""
     ema_decay: float = 0.95
     """Decay of the running density per refresh."""

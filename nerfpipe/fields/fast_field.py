@@ -70,6 +70,8 @@ class FastField(nn.Module):
         self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
         self.feature_grid = DenseGridEncoding(resolutions, feature_channels)
         self.shift = math.log(math.expm1(init_density))
+        self.active_levels = len(resolutions)
+        """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
         self.mlp = nn.Sequential(
             nn.Linear(self.feature_grid.out_dim + 16, hidden),
             nn.ReLU(inplace=True),
@@ -84,7 +86,7 @@ class FastField(nn.Module):
     def corners(self, points: Float[Tensor, "num_points 3"]) -> list:
         """Trilinear corners of every level (shared by the density and feature reads)."""
         x01 = self.normalize(points)
-        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions]
+        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions[: self.active_levels]]
 
     def density_from_corners(self, corners: list) -> Float[Tensor, "num_points"]:
         raw = None
@@ -93,16 +95,20 @@ class FastField(nn.Module):
             raw = v if raw is None else raw + v
         return nn.functional.softplus(raw[:, 0] + self.shift)
 
-    def rgb_from_corners(self, corners: list, directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
+    def rgb_from_corners(self, corners: list, dir_code: Float[Tensor, "num_points 16"]) -> Float[Tensor, "num_points 3"]:
+        """Colour from precomputed corners and :func:`direction_encoding` of the viewing directions."""
         feats = [grid_gather(t, idx, w) for t, (idx, w) in zip(self.feature_grid.tables, corners)]
-        h = torch.cat(feats + [direction_encoding(directions)], dim=-1)
+        missing = self.feature_grid.out_dim - self.feature_grid.channels * len(feats)
+        if missing:
+            feats.append(dir_code.new_zeros(dir_code.shape[0], missing))
+        h = torch.cat(feats + [dir_code], dim=-1)
         return torch.sigmoid(self.mlp(h))
 
     def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
         return self.density_from_corners(self.corners(points))
 
     def rgb(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
-        return self.rgb_from_corners(self.corners(points), directions)
+        return self.rgb_from_corners(self.corners(points), direction_encoding(directions))
 
     def density_tv(self, num_cells: int) -> Float[Tensor, ""]:
         """Total variation of the finest density level on ``num_cells`` random vertices."""

@@ -34,16 +34,12 @@ def trilinear_corners(
     pos = x01.clamp(0.0, 1.0) * size
     lo = torch.minimum(pos.floor(), (size - 1).clamp(min=0))
     frac = pos - lo
-    lo = lo.long()
     ry, rz = res[1], res[2]
-    base = (lo[:, 0] * ry + lo[:, 1]) * rz + lo[:, 2]
-    fx, fy, fz = frac.unbind(-1)
-    gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
-    idx, w = [], []
-    for di, dj, dk in _CORNERS:
-        idx.append(base + (di * ry + dj) * rz + dk)
-        w.append((fx if di else gx) * (fy if dj else gy) * (fz if dk else gz))
-    return torch.stack(idx, dim=-1), torch.stack(w, dim=-1)
+    base = (lo.long() * torch.tensor([ry * rz, rz, 1], device=x01.device)).sum(-1)
+    offsets = torch.tensor([(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS], device=x01.device)
+    w1 = torch.stack([1 - frac, frac], dim=-1)  # [N, 3, 2]
+    w = (w1[:, 0, :, None, None] * w1[:, 1, None, :, None] * w1[:, 2, None, None, :]).reshape(-1, 8)
+    return base[:, None] + offsets, w
 
 
 class _Gather(torch.autograd.Function):

@@ -58,8 +58,11 @@ def undistort_opencv(
     covers every real calibration we have seen; 20 iterations are far more than needed.
     """
     xy = xy_d.clone()
+    tol = _tolerance(xy_d)
     for _ in range(iterations):
         fx, fy, j00, j01, j11 = _opencv_residual_and_jacobian(xy, xy_d, params)
+        if fx.numel() == 0 or float(torch.maximum(fx.abs().max(), fy.abs().max())) <= tol:
+            break  # converged everywhere (usually after 2-4 steps)
         det = j00 * j11 - j01 * j01
         det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
         dx = (j11 * fx - j01 * fy) / det
@@ -86,13 +89,21 @@ def undistort_fisheye(
     theta_d = xy_d.norm(dim=-1)
     k1, k2, k3, k4 = params.unbind(-1)
     theta = theta_d.clone()
+    tol = _tolerance(xy_d)
     for _ in range(iterations):
         t2 = theta * theta
         f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+        if f.numel() == 0 or float(f.abs().max()) <= tol:
+            break
         df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + 9 * t2 * k4)))
         theta = theta - f / df.clamp_min(1e-6)
     scale = torch.where(theta_d > 1e-12, torch.tan(theta) / theta_d.clamp_min(1e-12), torch.ones_like(theta))
     return xy_d * scale[..., None]
+
+
+def _tolerance(x: Tensor) -> float:
+    """Residual below which Newton stops: a few ulps of the working precision."""
+    return 8 * torch.finfo(x.dtype).eps
 
 
 def distort(

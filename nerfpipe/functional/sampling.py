@@ -36,10 +36,9 @@ def stratified_samples(
     u = u.expand(*near.shape, num_samples + 1)
     if perturb:
         mids = 0.5 * (u[..., 1:] + u[..., :-1])
-        lower = torch.cat([u[..., :1], mids], dim=-1)
-        upper = torch.cat([mids, u[..., -1:]], dim=-1)
-        r = torch.rand(u.shape, dtype=u.dtype, device=u.device, generator=generator)
-        u = lower + (upper - lower) * r
+        lower, upper = mids[..., :-1], mids[..., 1:]  # inner edge k moves within [mid_{k-1}, mid_k]
+        r = torch.rand(lower.shape, dtype=u.dtype, device=u.device, generator=generator)
+        u = torch.cat([u[..., :1], lower + (upper - lower) * r, u[..., -1:]], dim=-1)
     return near[..., None] + (far - near)[..., None] * u
 
 

@@ -39,8 +39,16 @@ def console():
     return Console(stderr=True)
 
 
+PARAM_BUDGET = 0.5
+"""Without an explicit hash size, a grid gets the largest table with params <= this × H·W·3."""
+
+
 def configure(preset: str, overrides: dict, shape: "tuple[int, ...]") -> Fit2dConfig:
-    """The preset with command-line overrides applied; a grid's finest level defaults to the image size."""
+    """The preset with command-line overrides applied.
+
+    A grid's finest level defaults to the image's larger side, and its hash size to the largest
+    power of two that keeps the model within ``PARAM_BUDGET`` of the image's value count.
+    """
     from nerfpipe.errors import NerfpipeError
 
     cfg = get_preset(preset)
@@ -48,6 +56,7 @@ def configure(preset: str, overrides: dict, shape: "tuple[int, ...]") -> Fit2dCo
     if isinstance(enc, GridEncoderConfig):
         enc.max_resolution = max(shape[:2])
         enc.base_resolution = min(enc.base_resolution, enc.max_resolution)
+        _fit_hash_size(cfg, PARAM_BUDGET * shape[0] * shape[1] * 3)
     for flag, value in overrides.items():
         section, name = OVERRIDES[flag]
         kind = {"pe": PositionalEncoderConfig, "grid": GridEncoderConfig}.get(section)
@@ -55,6 +64,14 @@ def configure(preset: str, overrides: dict, shape: "tuple[int, ...]") -> Fit2dCo
             raise NerfpipeError(f"--{flag.replace('_', '-')} does not apply to the {preset} preset's encoder")
         setattr({"train": cfg.train, "field": cfg.field}.get(section, enc), name, value)
     return cfg
+
+
+def _fit_hash_size(cfg: Fit2dConfig, budget: float) -> None:
+    enc = cfg.field.encoder
+    for log2 in range(enc.log2_hashmap_size, 3, -1):
+        enc.log2_hashmap_size = log2
+        if cfg.field.setup().num_parameters() <= budget:
+            return
 
 
 def train_with_progress(target: TargetImage, cfg: Fit2dConfig, label: str) -> FitResult:
@@ -93,6 +110,7 @@ def metrics(result: FitResult, target: TargetImage, cfg: Fit2dConfig, preset: st
     return {
         "psnr": result.psnr,
         "seconds": result.train_seconds,
+        "cpu_seconds": result.train_cpu_seconds,
         "eval_seconds": result.eval_seconds,
         "total_seconds": result.train_seconds + result.eval_seconds,
         "iterations": result.iterations,

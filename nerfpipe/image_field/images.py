@@ -1,5 +1,6 @@
 """The target image of a 2D fit: read, checked, made RGB and kept to a workable size."""
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +32,9 @@ def load_target(path: "str | Path | None", max_pixels: int = 2048 * 2048) -> Tar
     if path is None:
         img, source = _skimage_photo(DEFAULT_IMAGE.split(":", 1)[1]), DEFAULT_IMAGE
     else:
-        img, source = read_image_uint8(Path(path)), str(path)
+        with warnings.catch_warnings():  # imageio warns (leaked handles, legacy plugins) while probing
+            warnings.simplefilter("ignore")
+            img, source = read_image_uint8(Path(path)), str(path)
     notes: "list[str]" = []
     if img.shape[0] < 2 or img.shape[1] < 2:
         raise NerfpipeError(f"image is {img.shape[1]}×{img.shape[0]} pixels; fitting needs at least 2×2", path)

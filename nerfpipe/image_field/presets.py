@@ -25,15 +25,16 @@ PRESETS: "dict[str, Fit2dConfig]" = {
         ImageFieldConfig(PositionalEncoderConfig(num_frequencies=10), hidden_width=256, num_layers=4),
         TrainConfig(iterations=3000, lr=1e-2, batch_size=10_000),
     ),
-    # Multiresolution grid (dense up to 2^16 vertices per level, hashed above) + one hidden layer
-    # of 32, every pixel every step (a grid vertex only learns from the pixels around it).
+    # Multiresolution grid (dense up to 2^16 vertices per level, hashed above) + one hidden layer of 32.
+    # Small batches at a high, decaying learning rate: per CPU second, 8k-pixel steps beat full-image
+    # steps (measured on fox.jpg: 600 × 8k reaches ~35 dB for the CPU cost of ~60 full-image steps).
     "fast": Fit2dConfig(
         ImageFieldConfig(
             GridEncoderConfig(num_levels=8, features_per_level=2, base_resolution=16, max_resolution=512),
             hidden_width=32,
             num_layers=2,
         ),
-        TrainConfig(iterations=300, lr=3e-2, lr_final_factor=0.1, batch_size=0, adam_eps=1e-15, num_evals=15),
+        TrainConfig(iterations=600, lr=5e-2, lr_final_factor=0.1, batch_size=8192, adam_eps=1e-15, num_evals=20),
     ),
 }
 

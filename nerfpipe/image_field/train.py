@@ -57,6 +57,8 @@ class FitResult:
     psnr: float = float("nan")
     iterations: int = 0
     train_seconds: float = 0.0
+    train_cpu_seconds: float = 0.0
+    """CPU time of this process during training (all threads); a load-independent cost measure."""
     eval_seconds: float = 0.0
     params: int = 0
 
@@ -77,13 +79,6 @@ def pixel_grid(height: int, width: int) -> Float[Tensor, "num_points 2"]:
 def psnr_from_mse(mse: float) -> float:
     """PSNR in dB for values in ``[0, 1]``."""
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
-
-
-@torch.no_grad()
-def render_image(model: ImageField, coords: Tensor, shape: "tuple[int, int]", chunk: int) -> Tensor:
-    """The field evaluated at every pixel, ``[H, W, 3]`` float in ``[0, 1]``."""
-    out = [model(coords[i : i + chunk]) for i in range(0, coords.shape[0], chunk)]
-    return torch.cat(out).reshape(*shape, 3)
 
 
 def schedule(cfg: TrainConfig) -> "tuple[set[int], set[int]]":
@@ -119,9 +114,11 @@ class _Fitter:
             if is_static(encoder):
                 self.cache = encoder(self.coords)
             elif isinstance(encoder, GridEncoder):
-                self.corners = encoder.corners(self.coords)
+                chunk = self.cfg.eval_chunk  # chunks stay in cache: ~1.5x faster than one pass
+                parts = [encoder.corners(self.coords[i : i + chunk]) for i in range(0, len(self.coords), chunk)]
+                self.corners = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
 
-    def features(self, idx: "Tensor | None") -> Tensor:
+    def features(self, idx: "Tensor | slice | None") -> Tensor:
         """Encoded pixels ``idx`` (all when None), using whatever :meth:`prepare` cached."""
         if self.cache is not None:
             return self.cache if idx is None else self.cache[idx]
@@ -141,8 +138,15 @@ class _Fitter:
         self.sched.step()
         return float(loss.detach())
 
+    @torch.no_grad()
+    def render(self) -> Tensor:
+        """The whole image ``[H, W, 3]``, in chunks, through the cached encoding when there is one."""
+        n, chunk = self.coords.shape[0], self.cfg.eval_chunk
+        out = [self.model.decode(self.features(slice(i, i + chunk))) for i in range(0, n, chunk)]
+        return torch.cat(out).reshape(*self.shape, 3)
+
     def evaluate(self, it: int, keep: bool) -> float:
-        img = render_image(self.model, self.coords, self.shape, self.cfg.eval_chunk)
+        img = self.render()
         psnr = psnr_from_mse(float(torch.mean((img - self.target_img) ** 2)))
         r = self.result
         r.curve_iterations.append(it), r.curve_seconds.append(r.train_seconds), r.curve_psnr.append(psnr)
@@ -165,12 +169,15 @@ def fit_image(
     """Fit a field to ``image``; ``on_step(iteration, loss, last_psnr)`` fires after each step."""
     f = _Fitter(image, field_cfg, cfg)
     evals, snaps = schedule(cfg)
+    c0 = time.process_time()
     f.result.train_seconds += _timed(f.prepare)
+    f.result.train_cpu_seconds += time.process_time() - c0
     f.result.eval_seconds += _timed(lambda: f.evaluate(0, keep=False))
     for it in range(1, cfg.iterations + 1):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         loss = f.step()
         f.result.train_seconds += time.perf_counter() - t0
+        f.result.train_cpu_seconds += time.process_time() - c0
         out_of_time = cfg.max_seconds is not None and f.result.train_seconds >= cfg.max_seconds
         if it in evals or out_of_time:
             f.result.eval_seconds += _timed(lambda: f.evaluate(it, keep=it in snaps or out_of_time))

@@ -20,7 +20,11 @@ import torch
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.rays import camera_rays
 from nerfpipe.typing import Float, Tensor
+
+BLOCK_RESOLUTION = 16
+"""Voxels per side of one TSDF block."""
 
 FrameFn = Callable[[int], "tuple[np.ndarray, np.ndarray | None]"]
 """``frame_fn(camera_index) -> (depth [H, W] camera-z, 0 or inf where unknown; rgb uint8 [H, W, 3] or None)``."""
@@ -73,21 +77,51 @@ def tsdf_fuse(
     o3d = require("open3d", "mesh")
     if cameras.has_distortion():
         raise NerfpipeError("TSDF fusion needs pinhole cameras: render undistorted depth maps (set distortion to NONE)")
-    o3c = o3d.core
-    vbg = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-        attr_channels=((1), (1), (3)), voxel_size=float(voxel_size), block_resolution=16, block_count=50_000,
-    )
-    has_color = False
+    margin = trunc_voxels * voxel_size
+    lo, hi = aabb[0].double() - margin, aabb[1].double() + margin
+    vbg = _voxel_block_grid(o3d, voxel_size, _block_budget(hi - lo, voxel_size))
+    has_color, fused = False, 0
     for i in range(len(cameras)) if indices is None else indices:
         depth, rgb = frame_fn(i)
+        depth = _mask_outside(np.asarray(depth, dtype=np.float64), cameras, i, lo, hi)
+        if not (depth > 0).any():
+            continue
         has_color |= rgb is not None
-        d_img, c_img = _images(o3d, np.asarray(depth), rgb)
+        d_img, c_img = _images(o3d, depth, rgb)
         k, cam_from_world = open3d_camera(cameras, i)
-        blocks = vbg.compute_unique_block_coordinates(d_img, k, cam_from_world, 1.0, float(depth_max), trunc_voxel_multiplier=float(trunc_voxels))
-        vbg.integrate(blocks, d_img, c_img, k, k, cam_from_world, 1.0, float(depth_max), trunc_voxel_multiplier=float(trunc_voxels))
+        args = (k, cam_from_world, 1.0, float(depth_max))
+        blocks = vbg.compute_unique_block_coordinates(d_img, *args, trunc_voxel_multiplier=float(trunc_voxels))
+        vbg.integrate(blocks, d_img, c_img, k, *args, trunc_voxel_multiplier=float(trunc_voxels))
+        fused += 1
+    if fused == 0:
+        raise NerfpipeError("TSDF fusion produced no surface: no depth map has valid depth inside the scene box")
     mesh = _from_tensor_mesh(vbg.extract_triangle_mesh(weight_threshold=float(min_weight)), has_color)
     return _crop(mesh, aabb, voxel_size)
+
+
+def _voxel_block_grid(o3d, voxel_size: float, block_count: int):
+    o3c = o3d.core
+    return o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+        attr_channels=((1), (1), (3)), voxel_size=float(voxel_size), block_resolution=BLOCK_RESOLUTION, block_count=block_count,
+    )
+
+
+def _block_budget(extent: Float[Tensor, "3"], voxel_size: float) -> int:
+    """Blocks of 16³ voxels covering the (dilated) box, plus one layer around: the most fusion can touch."""
+    per_axis = torch.ceil(extent / (BLOCK_RESOLUTION * voxel_size)) + 2
+    return int(per_axis.prod())
+
+
+def _mask_outside(depth: np.ndarray, cameras: Cameras, index: int, lo: Tensor, hi: Tensor) -> np.ndarray:
+    """Zero the depth of pixels whose surface point lies outside the box (keeps allocation bounded)."""
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    rays = camera_rays(cameras.to(dtype=torch.float64), index)
+    if rays.shape != depth.shape:
+        raise NerfpipeError(f"depth map {index} is {depth.shape[1]}x{depth.shape[0]} but its camera is {rays.shape[1]}x{rays.shape[0]}")
+    pts = rays.points_at(torch.from_numpy(depth) / rays.z_scale)
+    inside = ((pts >= lo) & (pts <= hi)).all(-1).numpy()
+    return np.where(inside, depth, 0.0)
 
 
 def _from_tensor_mesh(m, has_color: bool) -> TriangleMesh:

@@ -83,7 +83,7 @@ class Model(nn.Module):
         """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
-    def stats(self) -> "dict[str, float]":
+    def stats(self) -> "dict[str, int | float]":
         """Figures for metrics.json (parameters, MB, occupied fraction, ...)."""
         n = sum(p.numel() for p in self.parameters())
         return {"model_params": n, "model_mb": sum(p.numel() * p.element_size() for p in self.parameters()) / 2**20}

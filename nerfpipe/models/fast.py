@@ -12,14 +12,14 @@ Glossary:
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch.optim.optimizer import register_optimizer_step_pre_hook
 import torch.nn.functional as F
 
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples
-from nerfpipe.fields.fast_field import FastField
+from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
 from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, render_weights_packed
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
@@ -64,6 +64,10 @@ class FastConfig:
     """The occupancy grid that skips empty space."""
     init_alpha: float = 0.01
     """Opacity of one step everywhere at the start."""
+    coarse_to_fine_every: int = 64
+    """Grid levels beyond the first two are switched on one by one every this many steps (0: all at once)."""
+    warmup_step_factor: float = 4.0
+    """Before the first occupancy update every cell is occupied: march with this many times the step."""
     tighten_step: int = 256
     """Shrink the box to the occupied cells at this step and resample the grids (0: never)."""
     box_margin: float = 0.05
@@ -118,6 +122,7 @@ class FastModel(Model):
         aabb = info.aabb.detach().float()
         self.field = FastField(aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"])
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
+        self.field.active_levels = min(2, len(self.capacity['levels'])) if cfg.coarse_to_fine_every > 0 else len(self.capacity['levels'])
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
         self._samples_per_ray = 0.0
@@ -131,8 +136,12 @@ class FastModel(Model):
     @property
     def step_size(self) -> float:
         extent = self.field.aabb[1] - self.field.aabb[0]
-        res = torch.tensor(self.field.density_grid.resolutions[-1], dtype=extent.dtype, device=extent.device)
+        res = torch.tensor(self.field.density_grid.resolutions[self.field.active_levels - 1], dtype=extent.dtype, device=extent.device)
         return float((extent / (res - 1)).min()) * self.cfg.step_ratio
+
+    def _march_step(self) -> float:
+        warm = self.training and self._step < self.cfg.occupancy.warmup_steps
+        return self.step_size * (self.cfg.warmup_step_factor if warm else 1.0)
 
     # ------------------------------------------------------------------ rendering
     def density_fn(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
@@ -159,14 +168,14 @@ class FastModel(Model):
         flat = rays.reshape(-1)
         bg = background.expand(*shape, 3).reshape(-1, 3)
         samples = self.grid.march(
-            flat.origins, flat.directions, self.info.near, self.info.far, self.step_size,
+            flat.origins, flat.directions, self.info.near, self.info.far, self._march_step(),
             jitter=self.training, aabb=self.march_box,
         )
         samples = self._prune(samples, flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
         sigma = self.field.density_from_corners(corners)
-        rgbs = self.field.rgb_from_corners(corners, flat.directions[samples.ray_indices])
+        rgbs = self.field.rgb_from_corners(corners, direction_encoding(flat.directions)[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
         rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
@@ -196,6 +205,8 @@ class FastModel(Model):
 
     def _before_step(self, step: int) -> None:
         self._step = step
+        every, n = self.cfg.coarse_to_fine_every, len(self.field.density_grid.resolutions)
+        self.field.active_levels = min(n, 2 + step // every) if every > 0 else n
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
             self.grid.update(self.field.density, self.step_size)

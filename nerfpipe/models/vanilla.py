@@ -80,7 +80,7 @@ class VanillaModel(Model):
     def rgb_fn(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
         return self._last()(points, directions)[1]
 
-    def stats(self) -> "dict[str, float]":
+    def stats(self) -> "dict[str, int | float]":
         return {**super().stats(), "samples_per_ray": self.cfg.num_samples + self.cfg.num_importance}
 
 

@@ -1,0 +1,90 @@
+"""``nerfpipe eval-mesh``: geometry metrics of a mesh against a reference mesh or a dataset's points."""
+
+from pathlib import Path
+
+from typing import Annotated
+
+import tyro
+from tyro.conf import Positional
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
+
+
+def eval_mesh(
+    mesh: Annotated[Path, Positional, tyro.conf.arg(metavar="MESH")],
+    ref: Annotated[Path, Positional, tyro.conf.arg(metavar="REF")],
+    threshold: "float | None" = None,
+    samples: int = 100_000,
+    crop: bool = True,
+    json: bool = False,
+) -> int:
+    """Compare MESH with REF: a reference mesh file, or a dataset folder (its sparse points).
+
+    Against a mesh: accuracy, completeness, Chamfer-L1, precision/recall/F-score at the
+    threshold and normal consistency. Against a dataset (e.g. COLMAP): the fraction of its
+    sparse points within the threshold of MESH, in the dataset's input frame (the frame
+    nerfpipe exports in); a synthetic scene folder is also compared with its gt_mesh.ply.
+
+    Args:
+        mesh: the mesh to evaluate (PLY, OBJ, STL, OFF, GLB).
+        ref: reference mesh file, or dataset folder with sparse points.
+        threshold: distance threshold in the meshes' units (default: 1% of the reference
+            mesh's box diagonal, or of MESH's for points).
+        samples: points sampled on each surface.
+        crop: against points, keep only those inside MESH's bounding box grown by the threshold
+            (the points on the object, not the background).
+        json: print the figures as JSON.
+    """
+    import json as _json
+
+    from nerfpipe.mesh.export import read_mesh
+
+    pred = read_mesh(mesh)
+    if Path(ref).is_file() and Path(ref).suffix.lower() in MESH_SUFFIXES:
+        result = {"reference": str(ref), **_against_mesh(pred, read_mesh(ref), threshold, samples)}
+    else:
+        result = {"reference": str(ref), **_against_dataset(pred, Path(ref), threshold, samples, crop)}
+    if json:
+        print(_json.dumps(result, indent=2))
+    else:
+        for key, value in result.items():
+            print(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")
+    return 0
+
+
+def _against_mesh(pred, ref_mesh, threshold, samples) -> dict:
+    from nerfpipe.mesh.metrics import compare_meshes
+
+    return compare_meshes(pred, ref_mesh, threshold, num_samples=samples).to_dict()
+
+
+def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
+    import numpy as np
+
+    from data_adapters import load
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.mesh.metrics import default_threshold, point_fraction
+    from nerfpipe.synthetic import MESH_FILE
+
+    scene = load(ref)
+    out = {}
+    if (ref / MESH_FILE).is_file():
+        from nerfpipe.mesh.export import read_mesh
+
+        out.update({f"gt_mesh_{k}": v for k, v in _against_mesh(pred, read_mesh(ref / MESH_FILE), threshold, samples).items()})
+    if scene.points is None or len(scene.points.xyz) == 0:
+        if out:
+            return out
+        raise NerfpipeError("the dataset has no sparse points to compare with (give a reference mesh instead)", ref)
+    tau = default_threshold(pred) if threshold is None else float(threshold)
+    pts = scene.world_from_input.inverse().apply_points(scene.points.xyz.double()).numpy()
+    total = len(pts)
+    if crop:
+        lo, hi = pred.bounds()
+        pts = pts[np.all((pts >= lo - tau) & (pts <= hi + tau), axis=1)]
+    if len(pts) == 0:
+        raise NerfpipeError("no sparse point lies near the mesh: is the mesh in the dataset's frame?", ref)
+    fig = point_fraction(pts, pred, tau)
+    out.update({"points_total": total, "points_used": fig["num_points"], "points_within_threshold": fig["fraction_within"],
+                "points_median_distance": fig["median_distance"], "threshold": tau})
+    return out

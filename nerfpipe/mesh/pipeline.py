@@ -1,0 +1,164 @@
+"""The mesh post-stage as one function over callables: extract -> clean -> colour -> simplify -> write.
+
+:func:`build_meshes` works in the world frame with a ``density_fn`` (marching cubes) or a
+``render_fn`` (TSDF of rendered depth); :func:`write_meshes` maps the results to the input frame
+and writes ``mesh.ply``, ``mesh_simplified.ply``, ``mesh_views.png`` and ``mesh.json``. Nothing
+is written until every mesh is built, so bad input leaves no files behind.
+"""
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, visible_faces
+from nerfpipe.mesh.color import RgbFn, vertex_colors
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
+from nerfpipe.mesh.extract import DensityFn, OccupancyFn, extract_mesh
+from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
+from nerfpipe.mesh.views import write_views
+from nerfpipe.scene import Similarity
+from nerfpipe.typing import Float, Tensor
+
+DEFAULT_FACES = 100_000
+FILES = ("mesh.ply", "mesh_simplified.ply", "mesh_views.png", "mesh.json")
+
+
+@dataclass
+class MeshConfig:
+    """How a mesh is extracted, cleaned and simplified."""
+
+    method: Literal["mc", "tsdf"] = "mc"
+    """mc: marching cubes on the density field; tsdf: fuse depth rendered from the training cameras."""
+    resolution: int = 256
+    """Grid samples along the longest side of the box (mc), or TSDF voxels along it (tsdf)."""
+    level: "float | None" = None
+    """Density iso-level (mc); default: the density at which one voxel is half opaque, ln 2 / h."""
+    faces: "int | None" = None
+    """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
+    min_component: float = 0.05
+    """Drop connected pieces whose diagonal is below this fraction of the mesh's (floaters)."""
+    remove_unseen: bool = True
+    """Drop faces no training camera sees (inner blobs); needs the training cameras."""
+    close_holes: int = 0
+    """Fill holes with at most this many boundary edges (0: leave holes)."""
+    colors: bool = True
+    """Vertex colours from the field (mc) or the rendered images (tsdf)."""
+    chunk: int = 1 << 18
+    """Points per density / colour call."""
+
+
+@dataclass
+class MeshOutputs:
+    """Meshes in the world frame and the figures that go into mesh.json."""
+
+    full: TriangleMesh
+    simplified: TriangleMesh
+    figures: dict = field(default_factory=dict)
+
+
+def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, figures) -> TriangleMesh:
+    if cfg.method == "mc":
+        if density_fn is None:
+            raise NerfpipeError("marching cubes needs a density field")
+        res = extract_mesh(density_fn, aabb, cfg.resolution, cfg.level, occupancy_fn, cfg.chunk)
+        figures.update(level=res.level, voxel_size=res.voxel_size, evaluated_fraction=res.evaluated_fraction)
+        return res.mesh
+    if frame_fn is None or cameras is None:
+        raise NerfpipeError("TSDF fusion needs rendered depth and the training cameras")
+    voxel = float((aabb[1] - aabb[0]).max()) / cfg.resolution
+    figures.update(voxel_size=voxel)
+    return tsdf_fuse(cameras, frame_fn, aabb, voxel)
+
+
+def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict) -> TriangleMesh:
+    figures["faces_extracted"] = mesh.num_faces
+    if cfg.remove_unseen and cameras is not None:
+        seen = visible_faces(mesh, cameras)
+        figures["unseen_faces_removed"] = int((~seen).sum())
+        if seen.any():
+            mesh = mesh.submesh(seen)
+    if cfg.min_component > 0:
+        before = mesh.num_faces
+        mesh = remove_small_components(mesh, cfg.min_component)
+        figures["floater_faces_removed"] = before - mesh.num_faces
+    if cfg.close_holes > 0:
+        mesh = close_holes(mesh, cfg.close_holes)
+    if mesh.num_faces == 0:
+        raise NerfpipeError("nothing is left of the mesh after cleaning (every face was unseen or a floater)")
+    return mesh
+
+
+def _simplify(mesh: TriangleMesh, target: "int | None", figures: dict) -> TriangleMesh:
+    if target is None and mesh.num_faces <= DEFAULT_FACES:
+        figures.update(faces_simplified=mesh.num_faces, hausdorff_max=0.0, hausdorff_mean=0.0)
+        return mesh
+    small = simplify(mesh, DEFAULT_FACES if target is None else target)
+    d = hausdorff_distance(mesh, small)
+    figures.update(faces_simplified=small.num_faces, hausdorff_max=d["max"], hausdorff_mean=d["mean"])
+    return small
+
+
+def build_meshes(
+    cfg: MeshConfig,
+    aabb: Float[Tensor, "2 3"],
+    density_fn: "DensityFn | None" = None,
+    rgb_fn: "RgbFn | None" = None,
+    occupancy_fn: "OccupancyFn | None" = None,
+    frame_fn: "FrameFn | None" = None,
+    cameras: "Cameras | None" = None,
+) -> MeshOutputs:
+    """Extract, clean, colour and simplify, all in the world frame; writes nothing.
+
+    Args:
+        cfg: the settings.
+        aabb: box to mesh (world frame).
+        density_fn: density at points (mc).
+        rgb_fn: colour at points seen along directions (mc vertex colours).
+        occupancy_fn: skip test for empty space (mc).
+        frame_fn: depth and colour per camera index (tsdf).
+        cameras: the training cameras (tsdf input; unseen-face removal).
+    """
+    if cfg.faces is not None and cfg.faces < 4:
+        raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
+    figures: dict = {"method": cfg.method}
+    t0 = time.perf_counter()
+    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, figures)
+    t1 = time.perf_counter()
+    mesh = _clean(mesh, cfg, cameras, figures)
+    if cfg.colors and cfg.method == "mc" and rgb_fn is not None:
+        mesh = vertex_colors(mesh, rgb_fn, chunk=cfg.chunk)
+    if not cfg.colors:
+        mesh.vertex_colors = None
+    t2 = time.perf_counter()
+    small = _simplify(mesh, cfg.faces, figures)
+    t3 = time.perf_counter()
+    figures.update(faces=mesh.num_faces, vertices=mesh.num_vertices, seconds_extract=t1 - t0, seconds_clean_color=t2 - t1, seconds_simplify=t3 - t2)
+    return MeshOutputs(mesh, small, figures)
+
+
+def write_meshes(out: MeshOutputs, out_dir: "str | Path", world_from_input: Similarity, views: bool = True) -> "dict[str, Path]":
+    """Write the meshes in the input frame (and the picture of the world-frame mesh, +z up)."""
+    out_dir = Path(out_dir)
+    paths = {name: out_dir / name for name in FILES}
+    full, small = to_input_frame(out.full, world_from_input), to_input_frame(out.simplified, world_from_input)
+    write_ply(full, paths["mesh.ply"])
+    write_ply(small, paths["mesh_simplified.ply"])
+    if views:
+        write_views(out.full, paths["mesh_views.png"])
+    else:
+        paths.pop("mesh_views.png")
+    record = {**out.figures, "frame": "input", "world_from_input": {"rotation": world_from_input.rotation.tolist(),
+              "translation": world_from_input.translation.tolist(), "scale": float(world_from_input.scale)},
+              "bounds_input_frame": full.bounds().tolist(), "load": os.getloadavg()[0]}
+    atomic_write_bytes(paths["mesh.json"], (json.dumps(record, indent=2) + "\n").encode())
+    return paths

@@ -1,0 +1,112 @@
+"""Stage ``train``: fit a registered model (``nerfpipe.models`` group) with :class:`nerfpipe.trainer.Trainer`.
+
+The trainer's run folder is ``RUN_DIR/train`` (``config.json``, ``checkpoint.pt``, ``metrics.json``,
+``psnr.png``, ``progress.png``, ``cameras.png``). Videos are the ``render`` stage's job, so the
+trainer writes none here.
+
+Resume: when the stage runs again (interrupted, or with more ``iters`` or a new time budget) and
+``train/checkpoint.pt`` holds the same model, model options and training options (``iters``
+and ``time_budget`` aside), training continues from that checkpoint; otherwise it starts afresh.
+
+Time budget: the trainer's ``time_budget`` (training seconds, validation excluded) is the smaller
+of ``trainer.time_budget`` and ``budget_share`` of what is left of the pipeline's budget.
+"""
+
+import json
+import shutil
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from nerfpipe.stages import StageContext, StageSpec
+from nerfpipe.trainer import TrainerConfig
+
+TRAIN_DIR = "train"
+CHECKPOINT = f"{TRAIN_DIR}/checkpoint.pt"
+METRICS = f"{TRAIN_DIR}/metrics.json"
+_RESUMABLE_CHANGES = ("iters", "time_budget", "resume", "device", "video_frames")
+"""Trainer options that may differ between a checkpoint and the run that continues it."""
+
+
+@dataclass
+class TrainStageConfig:
+    """Options of the ``train`` stage."""
+
+    model: str = "vanilla"
+    """Registered model name (``nerfpipe.models`` entry points)."""
+    model_options: dict = field(default_factory=dict)
+    """Overrides of the model's config, nested as the config is (e.g. ``{"field": {"width": 64}}``)."""
+    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(video_frames=0))
+    """Training options (``device`` comes from the pipeline; videos are the render stage's)."""
+    budget_share: float = 0.6
+    """Share of the pipeline's remaining time budget given to training (the rest: evaluation, later stages)."""
+
+
+def model_config(name: str, options: dict):
+    """The registered model's config with ``options`` merged in (unknown keys are errors)."""
+    from nerfpipe.models.registry import get_model
+    from nerfpipe.runs import from_dict, to_dict
+
+    spec = get_model(name)
+    return from_dict(spec.config, _merge(to_dict(spec.config()), options))
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfig:
+    budget, left = config.trainer.time_budget, ctx.time_left()
+    if left is not None:
+        share = config.budget_share * left
+        budget = share if budget is None else min(budget, share)
+    return replace(config.trainer, time_budget=budget, device=ctx.device, video_frames=0)
+
+
+def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> bool:
+    """Whether ``out`` holds a checkpoint of this very training (up to the resumable options)."""
+    from nerfpipe.runs import to_dict
+
+    if not (out / "checkpoint.pt").is_file() or not (out / "config.json").is_file():
+        return False
+    old = json.loads((out / "config.json").read_text())
+    strip = lambda d: {k: v for k, v in d.items() if k not in _RESUMABLE_CHANGES}  # noqa: E731
+    same_trainer = strip(old.get("trainer", {})) == strip(to_dict(trainer_cfg))
+    return old.get("model") == model and old.get("model_config") == to_dict(model_cfg) and same_trainer
+
+
+def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
+    from nerfpipe.trainer import Trainer
+
+    scene = ctx.get("scene")
+    model_cfg = model_config(config.model, config.model_options)
+    trainer_cfg = _trainer_config(config, ctx)
+    out = ctx.path(TRAIN_DIR)
+    resume = _resumable(out, config.model, model_cfg, trainer_cfg)
+    if not resume and out.exists():
+        shutil.rmtree(out)
+    ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
+    trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
+    metrics = trainer.train()
+    return {"model": trainer.model.eval(), "metrics": metrics}
+
+
+def restore(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
+    from nerfpipe.runs import load_run
+
+    _, model, _ = load_run(ctx.path(TRAIN_DIR), ctx.device)
+    return {"model": model, "metrics": json.loads(ctx.path(METRICS).read_text())}
+
+
+STAGE = StageSpec(
+    name="train",
+    description="train a registered NeRF model (vanilla, fast...) with checkpoints and resume",
+    config=TrainStageConfig,
+    run=run,
+    requires=("scene",),
+    produces=(CHECKPOINT, METRICS),
+    provides=("model", "metrics"),
+    restore=restore,
+)

@@ -1,0 +1,137 @@
+"""The fast grid field: trilinear gathers against a loop reference (values, float64 gradcheck),
+resampling on box tightening, checkpoint round trip, and a tiny training run that learns."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from data_adapters import load
+from nerfpipe.estimators.occupancy import OccupancyGridConfig
+from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear, trilinear_corners
+from nerfpipe.models.base import SceneInfo
+from nerfpipe.models.fast import FastConfig, auto_preset
+from nerfpipe.rays import RayBundle
+from nerfpipe.trainer import Trainer, TrainerConfig
+from reference import trilinear_loop
+
+RES = (5, 4, 6)
+
+
+def points(n, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, generator=g, dtype=dtype) * 1.2 - 0.1  # some outside the cube: clamped
+    x[0] = torch.tensor([1.0, 1.0, 1.0], dtype=dtype)  # the far corner vertex
+    return x
+
+
+def test_trilinear_matches_loop_reference(dtype, tol):
+    table = torch.randn(RES[0] * RES[1] * RES[2], 3, dtype=dtype)
+    x = points(30, dtype)
+    torch.testing.assert_close(trilinear(table, RES, x), trilinear_loop(table, RES, x), **tol(dtype))
+
+
+def test_trilinear_matches_grid_sample(tol):
+    dtype = torch.float64
+    table = torch.randn(RES[0] * RES[1] * RES[2], 2, dtype=dtype)
+    x = points(50, dtype).clamp(0, 1)
+    vol = table.view(*RES, 2).permute(3, 2, 1, 0)[None]  # [1, C, rz, ry, rx]
+    ref = F.grid_sample(vol, (x * 2 - 1)[None, None, None], align_corners=True)[0, :, 0, 0].T
+    torch.testing.assert_close(trilinear(table, RES, x), ref, **tol(dtype))
+
+
+def test_gather_gradcheck_float64():
+    table = torch.randn(RES[0] * RES[1] * RES[2], 2, dtype=torch.float64, requires_grad=True)
+    idx, w = trilinear_corners(points(7, torch.float64), RES)
+    w = w.clone().requires_grad_()
+    assert torch.autograd.gradcheck(grid_gather, (table, idx, w))
+
+
+def test_encoding_shapes_and_vertex_values():
+    enc = DenseGridEncoding([(3, 3, 3), (5, 5, 5)], channels=2)
+    x = torch.rand(10, 3)
+    assert enc(x).shape == (10, 4) and enc.summed(x).shape == (10, 2)
+    with torch.no_grad():
+        enc.tables[1].copy_(torch.arange(125 * 2, dtype=torch.float32).view(125, 2))
+    vertex = torch.tensor([[0.25, 0.5, 1.0]])  # vertex (1, 2, 4) of the 5^3 level
+    assert enc(vertex)[0, 2:].tolist() == [2.0 * ((1 * 5 + 2) * 5 + 4), 2.0 * ((1 * 5 + 2) * 5 + 4) + 1]
+
+
+def info(**kw):
+    base = dict(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), near=0.5, far=6.0, num_images=10, pixels_per_image=1024)
+    return SceneInfo(**{**base, **kw})
+
+
+TINY = dict(levels=(8, 16), feature_channels=2, hidden=16, occupancy=OccupancyGridConfig(resolution=16, warmup_steps=2, update_every=2))
+
+
+def test_capacity_follows_the_scene():
+    assert auto_preset(info(num_images=100, pixels_per_image=200 * 200)) == "small"
+    assert auto_preset(info(num_images=100, pixels_per_image=400 * 400)) == "medium"
+    assert auto_preset(info(num_images=300, pixels_per_image=800 * 800)) == "large"
+    model = FastConfig(preset="small", levels=(8, 12)).setup(info())
+    assert model.capacity["preset"] == "small" and [r[0] for r in model.field.density_grid.resolutions] == [8, 12]
+    with pytest.raises(ValueError, match="unknown preset"):
+        FastConfig(preset="huge").setup(info())
+
+
+def test_tighten_resamples_a_linear_field_exactly():
+    model = FastConfig(**TINY).setup(info())
+    table = model.field.density_grid.tables[1]
+    res = model.field.density_grid.resolutions[1]
+    with torch.no_grad():  # a linear function of position: trilinear resampling reproduces it
+        ijk = torch.stack(torch.meshgrid(*[torch.arange(r) for r in res], indexing="ij"), -1).reshape(-1, 3).float()
+        xyz = -1 + 2 * ijk / (torch.tensor(res) - 1)
+        table.copy_((xyz @ torch.tensor([0.3, -0.2, 0.1]))[:, None])
+        model.grid.binary.zero_()
+        model.grid.binary.view(16, 16, 16)[4:12, 6:10, 2:14] = True
+    probe = torch.rand(100, 3) * 0.5 - 0.25
+    before = model.field.density(probe)
+    model.grid.update = lambda *a, **k: None  # keep the hand-made occupancy
+    model.tighten()
+    box = model.field.aabb
+    assert (box[1] - box[0] < 2.0).all() and (box[0] <= -0.25).all() and (box[1] >= 0.25).all()
+    torch.testing.assert_close(model.field.density(probe), before, rtol=1e-4, atol=1e-4)
+    state = model.state_dict()  # a fresh model accepts the resized checkpoint
+    fresh = FastConfig(**TINY).setup(info())
+    fresh.load_state_dict(state)
+    torch.testing.assert_close(fresh.field.density(probe), before, rtol=1e-4, atol=1e-4)
+
+
+def test_render_outputs_and_stats():
+    model = FastConfig(**TINY).setup(info())
+    o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 5.0, -3.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    rays = RayBundle(o, d, torch.zeros(2, dtype=torch.long), torch.ones(2))
+    out = model.get_outputs(rays, torch.tensor([[0.2, 0.4, 0.6]]).expand(2, 3))
+    assert out.rgb.shape == (2, 3) and out.num_samples > 0
+    torch.testing.assert_close(out.rgb[1], torch.tensor([0.2, 0.4, 0.6]))  # misses the box: background
+    stats = model.stats()
+    for key in ("model_params", "model_mb", "occupied_fraction", "samples_per_ray"):
+        assert key in stats
+
+
+SIZE = 24
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(scene_path, tmp_path_factory):
+    src = np.load(scene_path("lego_200x200") / "lego_200x200.npz")
+    shrink = lambda im: F.interpolate(torch.from_numpy(im).permute(0, 3, 1, 2).float(), size=(SIZE, SIZE), mode="area").round().byte().permute(0, 2, 3, 1).numpy()  # noqa: E731
+    out = tmp_path_factory.mktemp("tiny_fast") / "tiny_lego.npz"
+    np.savez(out, images_train=shrink(src["images_train"][::4]), c2ws_train=src["c2ws_train"][::4],
+             images_val=shrink(src["images_val"][:2]), c2ws_val=src["c2ws_val"][:2], c2ws_test=src["c2ws_test"][:2],
+             focal=np.float64(src["focal"]) * SIZE / 200)
+    return load(out)
+
+
+def test_tiny_training_run_learns(tiny_scene, tmp_path):
+    model = FastConfig(levels=(12, 24), feature_channels=2, hidden=16, step_ratio=1.0, tighten_step=20,
+                       occupancy=OccupancyGridConfig(resolution=24, warmup_steps=4, update_every=4))
+    cfg = TrainerConfig(iters=40, rays_per_step=512, eval_every=40, video_frames=0, checkpoint_every=0, seed=0)
+    trainer = Trainer(cfg, tiny_scene, "fast", model, tmp_path)
+    metrics = trainer.train()
+    val = trainer.history["val"]
+    assert val[-1][2] > val[0][2] + 5.0, val  # well above the untrained start
+    assert 0 < metrics["occupied_fraction"] < 1
+    assert metrics["samples_per_ray"] > 0

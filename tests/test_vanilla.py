@@ -1,0 +1,115 @@
+"""The classic NeRF field and model, the model registry, orbit cameras and the shared renderer."""
+
+import pytest
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
+from nerfpipe.models.base import Model, ModelSpec, SceneInfo
+from nerfpipe.models.registry import models
+from nerfpipe.models.vanilla import VanillaConfig
+from nerfpipe.orbit import look_at, orbit_cameras
+from nerfpipe.rays import RayBundle
+from nerfpipe.render import render_cameras
+
+TINY = VanillaFieldConfig(width=16, depth=3, skip=2, head_width=8, pos_frequencies=4, dir_frequencies=2)
+INFO = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=2.0, far=6.0, num_images=1, pixels_per_image=4)
+
+
+def classic_param_count(w=256, pos=63, dirs=27, head=128):
+    trunk = (pos * w + w) + 3 * (w * w + w) + ((w + pos) * w + w) + 3 * (w * w + w)
+    return trunk + (w + 1) + (w * w + w) + ((w + dirs) * head + head) + (head * 3 + 3)
+
+
+def test_field_architecture_is_the_classic_one():
+    f = VanillaField()
+    assert sum(p.numel() for p in f.parameters()) == classic_param_count()
+    assert [l.in_features for l in f.trunk] == [63, 256, 256, 256, 256 + 63, 256, 256, 256]
+    assert f.color_hidden.in_features == 256 + 27 and f.color_hidden.out_features == 128
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (2, 3)])
+def test_field_shapes_and_ranges(shape):
+    torch.manual_seed(0)
+    f = VanillaField(TINY)
+    with torch.no_grad():
+        f.density_head.bias.fill_(-0.5)  # push pre-activations negative: ReLU must still give >= 0
+    pos = torch.randn(*shape, 3)
+    dirs = torch.nn.functional.normalize(torch.randn(*shape, 3), dim=-1)
+    sigma, rgb = f(pos, dirs)
+    assert sigma.shape == shape and rgb.shape == (*shape, 3)
+    assert torch.all(sigma >= 0) and torch.all((rgb > 0) & (rgb < 1))
+    torch.testing.assert_close(f.density(pos), sigma)
+
+
+def rays(n=6, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    return RayBundle(origins=torch.tensor([0.0, 0.0, -4.0]).expand(n, 3).clone(), directions=d, cam_idx=torch.zeros(n, dtype=torch.long), z_scale=torch.ones(n))
+
+
+@pytest.mark.parametrize("num_importance", [0, 8])
+def test_model_outputs_and_losses(num_importance):
+    torch.manual_seed(0)
+    model = VanillaConfig(num_samples=8, num_importance=num_importance, field=TINY).setup(INFO)
+    assert isinstance(model, Model)
+    out = model.get_outputs(rays(), torch.ones(6, 3))
+    assert out.rgb.shape == (6, 3) and out.depth.shape == (6,) and out.acc.shape == (6,)
+    assert out.num_samples == 6 * (8 + (num_importance and 8 + num_importance))
+    losses = model.get_losses(out, torch.zeros(6, 3))
+    assert set(losses) == ({"rgb"} | ({"rgb_coarse"} if num_importance else set()))
+    sum(losses.values()).backward()
+    assert all(p.grad is not None for p in model.parameters())
+    model.eval()
+    a, b = model.get_outputs(rays(), torch.ones(6, 3)), model.get_outputs(rays(), torch.ones(6, 3))
+    assert torch.equal(a.rgb, b.rgb)  # no jitter at evaluation
+    assert model.stats()["samples_per_ray"] == 8 + num_importance
+
+
+def test_registry_has_vanilla():
+    found = models()
+    assert isinstance(found["vanilla"], ModelSpec)
+    assert found["vanilla"].config is VanillaConfig
+
+
+def test_look_at_and_orbit_are_upright_and_centred():
+    ref = Cameras.create(look_at(torch.tensor([4.0, 0.0, 2.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))[None], 50.0, 50.0, 32.0, 24.0, 64, 48)
+    center = torch.tensor([0.1, -0.2, 0.3])
+    cams = orbit_cameras(ref, center, 12)
+    assert cams.shape == (12,)
+    rot = cams.world_from_cam[:, :3, :3]
+    torch.testing.assert_close(rot.transpose(1, 2) @ rot, torch.eye(3).expand(12, 3, 3), atol=1e-5, rtol=0)
+    assert torch.all(torch.det(rot) > 0)
+    uv, z = cams.project(center.expand(12, 3))  # the centre lands on the principal point
+    torch.testing.assert_close(uv, torch.tensor([32.0, 24.0]).expand(12, 2), atol=1e-3, rtol=0)
+    assert torch.all(z > 0)
+    assert torch.all(-rot[:, 2, 1] > 0)  # image up (-y) points to world +z
+    assert torch.all(rot[:, 2, 0].abs() < 1e-6)  # no roll: image x stays horizontal
+    dist = (cams.centers - center).norm(dim=-1)
+    expected = float((ref.centers[0] - center).norm())  # same distance and elevation as the reference
+    torch.testing.assert_close(dist, torch.full((12,), expected), atol=1e-3, rtol=0)
+    torch.testing.assert_close(cams.centers[:, 2], torch.full((12,), 2.0), atol=1e-3, rtol=0)
+
+
+def test_render_cameras_is_chunk_invariant():
+    torch.manual_seed(0)
+    model = VanillaConfig(num_samples=8, field=TINY).setup(INFO)
+    ref = Cameras.create(look_at(torch.tensor([0.0, -4.0, 0.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))[None], 8.0, 8.0, 4.0, 3.0, 8, 6)
+    a = render_cameras(model, ref, chunk=5)[0]
+    b = render_cameras(model, ref, chunk=1000)[0]
+    assert a.rgb.shape == (6, 8, 3) and a.depth.shape == (6, 8)
+    torch.testing.assert_close(a.rgb, b.rgb)
+    torch.testing.assert_close(a.depth, b.depth)
+    assert model.training  # restored after rendering
+
+
+def test_depth_colormap_is_monotone_and_marks_background():
+    from nerfpipe.colormap import colorize_depth
+
+    depth = torch.linspace(2.0, 6.0, 5)[None].expand(2, 5).clone()
+    acc = torch.ones(2, 5)
+    acc[1, 0] = 0.1
+    img = colorize_depth(depth, acc, 2.0, 6.0)
+    assert img.shape == (2, 5, 3) and img.dtype.name == "uint8"
+    assert img[0, 0, 2] > img[0, 0, 0] and img[0, -1, 0] > img[0, -1, 2]  # near blue, far red
+    assert img[1, 0].tolist() == [0, 0, 0]
