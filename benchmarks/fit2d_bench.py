@@ -46,6 +46,7 @@ def main(
     fast_iterations: Optional[int] = None,
     target_db: float = 30.0,
     budget_seconds: float = 20.0,
+    course_max_seconds: Optional[float] = None,
     skip_course: bool = False,
     threads: int = 2,
 ) -> None:
@@ -58,6 +59,7 @@ def main(
         fast_iterations: iterations of the fast preset (default: the preset's).
         target_db: report the training seconds at which each run first reaches this PSNR.
         budget_seconds: report the best PSNR within this many training seconds.
+        course_max_seconds: stop the course recipe after this much training time (busy machines).
         skip_course: only run the fast preset.
         threads: torch CPU threads.
     """
@@ -71,7 +73,8 @@ def main(
     load_before = os.getloadavg()
     runs = [("fast", {"iterations": fast_iterations} if fast_iterations else {})]
     if not skip_course:
-        runs.append(("course", {"iterations": course_iterations}))
+        course = {"iterations": course_iterations}
+        runs.append(("course", course if course_max_seconds is None else {**course, "max_seconds": course_max_seconds}))
     results, rows = {}, []
     for name, overrides in runs:
         cfg = fit2d_run.configure(name, overrides, target.pixels.shape)

@@ -31,6 +31,7 @@ def _commands() -> dict:
         "stages": run.list_stages,
         "eval-mesh": __import__("nerfpipe.commands.eval_mesh", fromlist=["eval_mesh"]).eval_mesh,
         "mesh": __import__("nerfpipe.commands.mesh", fromlist=["mesh"]).mesh,
+        "bench": __import__("nerfpipe.commands.bench", fromlist=["bench"]).bench,
     }
 
 

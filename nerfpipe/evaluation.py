@@ -90,10 +90,11 @@ def finish(trainer) -> dict:
         "model": trainer.model_name,
         **stats,
     }
-    plots.plot_psnr(trainer.history, out / "psnr.png")
-    plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
-    plots.plot_cameras(trainer.scene, trainer.model, out / "cameras.png")
-    if cfg.video_frames:
+    if cfg.write_outputs:
+        plots.plot_psnr(trainer.history, out / "psnr.png")
+        plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
+        plots.plot_cameras(trainer.scene, trainer.model, out / "cameras.png")
+    if cfg.video_frames and cfg.write_outputs:
         cams = path_cameras(trainer.scene, "test", cfg.video_frames)
         w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))
         bg = background_colors(trainer.eval_bg, 1)[0]

@@ -60,6 +60,8 @@ class TrainerConfig:
     """Resolution factor of the videos."""
     resume: bool = False
     """Continue from the run folder's checkpoint.pt."""
+    write_outputs: bool = True
+    """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
 
 
 def scene_info(scene: SceneData) -> SceneInfo:

@@ -220,6 +220,28 @@ def test_cli_sweep(tmp_path):
     assert (out / "sweep_psnr.png").stat().st_size > 0 and "| 40 |" in (out / "sweep.md").read_text()
 
 
+def test_cli_rejects_flags_of_the_other_encoder(tmp_path, capsys):
+    img = _write(tmp_path / "in.png", _photo(8, 8))
+    assert main(["fit2d", img, "--out", str(tmp_path / "o"), "--grid-levels", "4", "--threads", "1"]) == 2
+    assert "does not apply" in capsys.readouterr().err
+
+
+def test_default_image_ships_with_scikit_image():
+    from nerfpipe.image_field.images import load_target
+
+    target = load_target(None)
+    assert target.pixels.dtype == np.uint8 and target.pixels.shape[-1] == 3 and min(target.pixels.shape[:2]) >= 256
+    assert target.source.startswith("skimage:") and target.pixels.flags.writeable
+
+
+def test_public_names_resolve():
+    import nerfpipe.encoders
+    import nerfpipe.image_field
+
+    for module in (nerfpipe.encoders, nerfpipe.image_field):
+        assert all(hasattr(module, name) for name in module.__all__)
+
+
 def _bad_inputs(tmp_path):
     (tmp_path / "notes.png").write_text("not an image")
     return {

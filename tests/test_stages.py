@@ -328,7 +328,7 @@ TINY_TRAIN = {
         "model_options": {"num_samples": 8, "field": {"width": 16, "depth": 2, "skip": 1, "head_width": 16,
                                                       "pos_frequencies": 2, "dir_frequencies": 1}},
         "trainer": {"iters": 2, "rays_per_step": 32, "eval_every": 0, "final_eval_views": 1, "eval_scale": 0.1,
-                    "checkpoint_every": 1},
+                    "checkpoint_every": 1, "write_outputs": False},
     },
     "render": {"frames": 3, "scale": 0.2},
 }  # fmt: skip

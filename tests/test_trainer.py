@@ -47,7 +47,7 @@ MODEL = VanillaConfig(num_samples=16, field=VanillaFieldConfig(width=32, depth=3
 
 
 def tcfg(**kw):
-    base = dict(iters=8, rays_per_step=128, lr=5e-3, eval_every=4, checkpoint_every=4, video_frames=0, seed=3)
+    base = dict(iters=8, rays_per_step=128, lr=5e-3, eval_every=4, checkpoint_every=4, video_frames=0, seed=3, write_outputs=False)
     return TrainerConfig(**{**base, **kw})
 
 
@@ -56,12 +56,11 @@ def params(trainer):
 
 
 def test_psnr_rises_and_outputs_exist(tiny_scene, tmp_path):
-    t = Trainer(tcfg(iters=60, eval_every=20, video_frames=3), tiny_scene, "vanilla", MODEL, tmp_path)
+    t = Trainer(tcfg(iters=60, eval_every=20, video_frames=3, write_outputs=True), tiny_scene, "vanilla", MODEL, tmp_path)
     metrics = t.train()
     val = t.history["val"]
     assert val[0][0] == 0 and val[-1][0] == 60
     assert val[-1][2] > val[0][2] + 3.0, val  # well above the untrained start
-    print("val PSNR history", [(r[0], round(r[2], 2)) for r in val])
     for key in ("val_psnr", "val_ssim", "train_seconds", "iterations", "model_params", "samples_per_ray"):
         assert key in metrics
     assert metrics["iterations"] == 60 and metrics["samples_per_ray"] == 16

@@ -131,6 +131,10 @@ def machine() -> dict:
 
 
 def run_single(target: TargetImage, cfg: Fit2dConfig, preset: str, out: Path) -> FitResult:
+    note = encoding_note(cfg, target.pixels.shape)
+    if note.get("aliased_frequencies"):
+        console().print(f"note: L={note['num_frequencies']} exceeds the {note['nyquist_num_frequencies']} frequencies "
+                        f"this image's resolution carries; phases are exact, the extra frequencies alias")
     result = train_with_progress(target, cfg, f"fit2d {preset}")
     write_outputs(result, target, cfg, preset, out)
     console().print(f"PSNR {result.psnr:.2f} dB after {result.iterations} iterations, "

@@ -45,7 +45,7 @@ def load_target(path: "str | Path | None", max_pixels: int = 2048 * 2048) -> Tar
         h, w = img.shape[:2]
         img = _downscale(img, max_pixels)
         notes.append(f"downscaled {w}×{h} to {img.shape[1]}×{img.shape[0]} (limit --max-pixels {max_pixels})")
-    return TargetImage(np.ascontiguousarray(img), source, notes)
+    return TargetImage(np.require(img, np.uint8, ["C_CONTIGUOUS", "WRITEABLE"]), source, notes)
 
 
 def _skimage_photo(name: str) -> np.ndarray:

@@ -23,7 +23,7 @@ PRESETS: "dict[str, Fit2dConfig]" = {
     # The course: PE with L = 10, 4 linear layers of width 256, Adam 1e-2, 10k random pixels per step.
     "course": Fit2dConfig(
         ImageFieldConfig(PositionalEncoderConfig(num_frequencies=10), hidden_width=256, num_layers=4),
-        TrainConfig(iterations=3000, lr=1e-2, batch_size=10_000),
+        TrainConfig(iterations=3000, lr=1e-2, batch_size=10_000, num_evals=12),  # a full-image eval costs ~10 steps
     ),
     # Multiresolution grid (dense up to 2^16 vertices per level, hashed above) + one hidden layer of 32.
     # Small batches at a high, decaying learning rate: per CPU second, 8k-pixel steps beat full-image

@@ -87,7 +87,7 @@ def _scaled(cameras: Cameras, max_side: int) -> Cameras:
     return Cameras(cameras.world_from_cam, cameras.fx * sx, cameras.fy * sy, cameras.cx * sx, cameras.cy * sy, w.long(), h.long(), cameras.distortion, cameras.dist_params)
 
 
-def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 200, tolerance: "float | None" = None) -> Bool[np.ndarray, "num_faces"]:
+def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tolerance: "float | None" = None) -> Bool[np.ndarray, "num_faces"]:
     """Faces whose centre some camera sees: in its image and not behind the ray-cast surface.
 
     For each camera a depth map of the mesh is ray-cast at ``max_side`` pixels; a face is

@@ -67,11 +67,19 @@ class Grid:
         shape = tuple(int(math.ceil(e / h - 1e-6)) + 1 for e in extent)
         return cls(lo, h, shape)
 
-    def points(self, x_start: int, x_stop: int) -> Float[Tensor, "nx ny nz 3"]:
-        """Sample positions of the slab ``x_start <= i < x_stop`` (float32)."""
-        axes = [torch.arange(x_start, x_stop, dtype=torch.float64)] + [torch.arange(n, dtype=torch.float64) for n in self.shape[1:]]
-        ijk = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-        return (torch.from_numpy(self.origin) + self.spacing * ijk).float()
+    def axis(self, a: int, start: int = 0, stop: "int | None" = None) -> Float[Tensor, "n"]:
+        """Sample coordinates along axis ``a`` (float32)."""
+        idx = torch.arange(start, self.shape[a] if stop is None else stop, dtype=torch.float64)
+        return (self.origin[a] + self.spacing * idx).float()
+
+    def points(self, x_start: int, x_stop: int, out: "Tensor | None" = None) -> Float[Tensor, "nx ny nz 3"]:
+        """Sample positions of the slab ``x_start <= i < x_stop`` (float32, written by broadcasting into ``out``)."""
+        _, ny, nz = self.shape
+        pts = torch.empty(x_stop - x_start, ny, nz, 3) if out is None else out[: x_stop - x_start]
+        pts[..., 0] = self.axis(0, x_start, x_stop)[:, None, None]
+        pts[..., 1] = self.axis(1)[None, :, None]
+        pts[..., 2] = self.axis(2)[None, None, :]
+        return pts
 
 
 @dataclass
@@ -105,9 +113,10 @@ def _sample_grid(grid: Grid, fn: DensityFn, mask: "Tensor | None", chunk: int, d
     nx, ny, nz = grid.shape
     out = torch.zeros(grid.shape, dtype=torch.float32)
     slab = max(1, chunk // (ny * nz))
+    buffer = torch.empty(min(slab, nx), ny, nz, 3)
     for x0 in range(0, nx, slab):
         x1 = min(nx, x0 + slab)
-        pts = grid.points(x0, x1)
+        pts = grid.points(x0, x1, buffer)
         sel = None if mask is None else mask[x0:x1]
         flat = pts.reshape(-1, 3) if sel is None else pts[sel]
         vals = torch.cat([fn(p.to(device)).reshape(-1).float().cpu() for p in flat.split(chunk)]) if len(flat) else flat[:, 0]

@@ -1,0 +1,202 @@
+"""Speed against error of the NeRF models: each preset trained once, scored at several time budgets.
+
+Run: ``nerfpipe bench PATH --out DIR --budgets 20 60 600`` (or ``python -m benchmarks.bench_nerf``).
+Every preset (the classic ``vanilla`` and the ``fast`` field at several sizes) trains in one run;
+when its training seconds pass a budget, the model as it is then is scored on the validation views
+(render time excluded from the training seconds) and training goes on to the next budget.
+Writes ``table.md``, ``table.json`` and ``psnr_vs_seconds.png`` (val PSNR against training
+seconds, marker area following model MB) to DIR, with each preset's progress images under
+``DIR/<preset>/``. The load average is recorded with every row: wall-clock seconds are inflated on a
+shared machine, so CPU seconds of the process are recorded too, and ``clock="cpu"`` budgets by
+them (divided by the thread count).
+"""
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+def _presets() -> dict:
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.models.vanilla import VanillaConfig
+
+    return {
+        "vanilla": ("vanilla", VanillaConfig(), {"rays_per_step": 1024, "lr": 5e-4}),
+        "fast-small": ("fast", FastConfig(preset="small"), {"rays_per_step": 4096}),
+        "fast-medium": ("fast", FastConfig(preset="medium"), {"rays_per_step": 4096}),
+        "fast-large": ("fast", FastConfig(preset="large"), {"rays_per_step": 4096}),
+    }
+
+
+PRESET_NAMES = ("vanilla", "fast-small", "fast-medium", "fast-large")
+
+
+@dataclass
+class BenchConfig:
+    """What to benchmark."""
+
+    budgets: "tuple[float, ...]" = (20.0, 60.0, 600.0)
+    """Training seconds at which each preset is scored."""
+    presets: "tuple[str, ...]" = PRESET_NAMES
+    """Presets to train: vanilla, fast-small, fast-medium, fast-large."""
+    eval_views: int = 0
+    """Validation views scored at each budget (0: all)."""
+    eval_scale: float = 1.0
+    """Resolution factor of the validation renders."""
+    threads: int = 2
+    """torch CPU threads."""
+    clock: str = "wall"
+    """Budget clock: ``wall`` seconds, or ``cpu`` (process CPU seconds / threads; fairer on a busy machine)."""
+    seed: int = 0
+    device: str = "cpu"
+    rays_per_step: "int | None" = None
+    """Override every preset's rays per step."""
+
+
+@dataclass
+class _Clock:
+    kind: str
+    threads: int
+    wall: float = 0.0
+    cpu: float = 0.0
+
+    def add(self, wall: float, cpu: float) -> None:
+        self.wall += wall
+        self.cpu += cpu
+
+    @property
+    def seconds(self) -> float:
+        return self.cpu / self.threads if self.kind == "cpu" else self.wall
+
+
+def _trainer(scene, name: str, cfg: BenchConfig, out: Path):
+    from nerfpipe.trainer import Trainer, TrainerConfig
+
+    model_name, model_cfg, over = _presets()[name]
+    if cfg.rays_per_step:
+        over = dict(over, rays_per_step=cfg.rays_per_step)
+    tcfg = TrainerConfig(
+        iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, seed=cfg.seed, device=cfg.device,
+        eval_scale=cfg.eval_scale, **over,
+    )
+    return Trainer(tcfg, scene, model_name, model_cfg, out / name)
+
+
+def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -> dict:
+    from nerfpipe import evaluation
+
+    t0 = time.perf_counter()
+    psnr, ssim = evaluation.validate(trainer, cfg.eval_views)
+    stats = trainer.model.stats()
+    return {
+        "preset": name, "budget_s": budget, "clock": clock.kind, "clock_s": clock.seconds, "train_s": clock.wall, "train_cpu_s": clock.cpu,
+        "iterations": trainer.step, "val_psnr": psnr, "val_ssim": ssim,
+        "model_params": int(stats.get("model_params", 0)), "model_mb": float(stats.get("model_mb", 0.0)),
+        "occupied_fraction": stats.get("occupied_fraction"), "samples_per_ray": stats.get("samples_per_ray"),
+        "eval_s": time.perf_counter() - t0, "loadavg": os.getloadavg()[0],
+    }
+
+
+def bench_preset(scene, name: str, cfg: BenchConfig, out: Path) -> "list[dict]":
+    """Train one preset until the last budget, scoring it as each budget passes."""
+    trainer = _trainer(scene, name, cfg, out)
+    trainer.out.mkdir(parents=True, exist_ok=True)
+    trainer.model.train()
+    clock, rows = _Clock(cfg.clock, cfg.threads), []
+    for budget in sorted(cfg.budgets):
+        while clock.seconds < budget:
+            w0, c0 = time.perf_counter(), time.process_time()
+            trainer.train_step()
+            clock.add(time.perf_counter() - w0, time.process_time() - c0)
+        rows.append(_score(trainer, cfg, name, budget, clock))
+        r = rows[-1]
+        print(f"{name:12s} {budget:6g} s: {r['val_psnr']:.2f} dB after {r['iterations']} it "
+              f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f})", flush=True)
+    return rows
+
+
+def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig) -> None:
+    """table.json, table.md and psnr_vs_seconds.png in ``out`` (written atomically)."""
+    from nerfpipe.runs import atomic_write_bytes, write_json
+
+    write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
+    lines = [
+        f"# Speed against error on {scene_name}", "",
+        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | occupied | samples/ray | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    for r in rows:
+        lines.append(
+            f"| {r['preset']} | {r['budget_s']:g} | {r['train_s']:.1f} | {r['train_cpu_s']:.1f} | {r['iterations']} | "
+            f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | "
+            f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} |"
+        )
+    atomic_write_bytes(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
+    plot(rows, out / "psnr_vs_seconds.png", scene_name)
+
+
+def plot(rows: "list[dict]", path: Path, title: str) -> None:
+    """Val PSNR against training seconds, one line per preset, marker area ~ model MB."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name in dict.fromkeys(r["preset"] for r in rows):
+        mine = [r for r in rows if r["preset"] == name]
+        xs, ys = [r["clock_s"] for r in mine], [r["val_psnr"] for r in mine]
+        sizes = [20 + 4 * r["model_mb"] for r in mine]
+        line = ax.plot(xs, ys, "-", alpha=0.6)[0]
+        ax.scatter(xs, ys, s=sizes, color=line.get_color(), alpha=0.7, label=f"{name} ({mine[-1]['model_mb']:.0f} MB)")
+    ax.set_xscale("log")
+    ax.set_xlabel("training seconds" + (" (CPU s / threads)" if rows and rows[0]["clock"] == "cpu" else ""))
+    ax.set_ylabel("val PSNR (dB)")
+    ax.set_title(f"{title}: speed against error (marker area ~ model MB)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    from nerfpipe.runs import atomic_write_bytes
+
+    atomic_write_bytes(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+    plt.close(fig)
+
+
+def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
+    """Benchmark every preset of ``cfg`` on the dataset at ``path``; returns the table rows."""
+    import torch
+    from data_adapters import load
+
+    from nerfpipe.errors import NerfpipeError
+
+    unknown = [p for p in cfg.presets if p not in _presets()]
+    if unknown:
+        raise NerfpipeError(f"unknown bench preset(s) {', '.join(unknown)}; choose from {', '.join(PRESET_NAMES)}")
+    torch.set_num_threads(cfg.threads)
+    scene = load(path)
+    out.mkdir(parents=True, exist_ok=True)
+    rows: "list[dict]" = []
+    for name in cfg.presets:
+        rows += bench_preset(scene, name, cfg, out)
+        write_table(rows, out, Path(path).name, cfg)  # partial tables survive an interrupted run
+    return rows
+
+
+def main() -> None:
+    import tyro
+
+    @dataclass
+    class Args:
+        path: Path
+        out: Path = Path("bench_out")
+        cfg: BenchConfig = field(default_factory=BenchConfig)
+
+    a = tyro.cli(Args)
+    run(a.path, a.out, a.cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""``nerfpipe bench``: speed against error of the NeRF presets on one dataset."""
+
+from pathlib import Path
+
+from tyro.conf import Positional
+
+
+def bench(
+    path: Positional[Path],
+    out: Path = Path("bench_out"),
+    budgets: "tuple[float, ...]" = (20.0, 60.0, 600.0),
+    presets: "tuple[str, ...]" = ("vanilla", "fast-small", "fast-medium", "fast-large"),
+    eval_views: int = 0,
+    eval_scale: float = 1.0,
+    rays_per_step: "int | None" = None,
+    threads: int = 2,
+    clock: str = "wall",
+    seed: int = 0,
+    device: str = "cpu",
+) -> int:
+    """Train each preset once and score it at every time budget: table.md, table.json, psnr_vs_seconds.png.
+
+    Args:
+        path: dataset file or folder (any format data_adapters.load reads).
+        out: output folder.
+        budgets: training seconds at which each preset is scored (render time excluded).
+        presets: vanilla, fast-small, fast-medium, fast-large.
+        eval_views: validation views scored at each budget (0: all).
+        eval_scale: resolution factor of the validation renders.
+        rays_per_step: override every preset's rays per iteration.
+        threads: torch CPU threads.
+        clock: wall (seconds) or cpu (process CPU seconds / threads, fairer on a busy machine).
+        seed: random seed.
+        device: torch device.
+    """
+    from benchmarks.bench_nerf import BenchConfig, run
+
+    cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
+                      threads=threads, clock=clock, seed=seed, device=device, rays_per_step=rays_per_step)
+    run(path, out, cfg)
+    return 0

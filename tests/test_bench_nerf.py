@@ -1,0 +1,42 @@
+"""``nerfpipe bench``: the table and plot writers, and a two-budget run of one tiny preset."""
+
+import json
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from benchmarks.bench_nerf import BenchConfig, write_table
+
+
+def row(preset, budget, psnr, mb):
+    return {"preset": preset, "budget_s": budget, "clock": "wall", "clock_s": budget * 1.01, "train_s": budget * 1.01,
+            "train_cpu_s": budget * 2, "iterations": int(budget * 3), "val_psnr": psnr, "val_ssim": 0.5,
+            "model_params": 1000, "model_mb": mb, "occupied_fraction": None if preset == "vanilla" else 0.1,
+            "samples_per_ray": 12.0, "eval_s": 1.0, "loadavg": 0.5}
+
+
+def test_write_table_outputs(tmp_path):
+    rows = [row("vanilla", 20, 12.0, 2.0), row("vanilla", 60, 14.0, 2.0), row("fast-small", 20, 22.0, 45.0), row("fast-small", 60, 26.5, 45.0)]
+    write_table(rows, tmp_path, "lego", BenchConfig(budgets=(20, 60)))
+    table = json.loads((tmp_path / "table.json").read_text())
+    assert [r["val_psnr"] for r in table["rows"]] == [12.0, 14.0, 22.0, 26.5]
+    md = (tmp_path / "table.md").read_text().splitlines()
+    assert len([line for line in md if line.startswith("| fast-small")]) == 2
+    assert "26.50" in md[-1]
+    assert (tmp_path / "psnr_vs_seconds.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bench_run_scores_each_budget(scene_path, tmp_path):
+    from benchmarks.bench_nerf import run
+
+    src = np.load(scene_path("lego_200x200") / "lego_200x200.npz")
+    shrink = lambda im: F.interpolate(torch.from_numpy(im).permute(0, 3, 1, 2).float(), size=(16, 16), mode="area").round().byte().permute(0, 2, 3, 1).numpy()  # noqa: E731
+    npz = tmp_path / "tiny.npz"
+    np.savez(npz, images_train=shrink(src["images_train"][::20]), c2ws_train=src["c2ws_train"][::20],
+             images_val=shrink(src["images_val"][:1]), c2ws_val=src["c2ws_val"][:1], c2ws_test=src["c2ws_test"][:1],
+             focal=np.float64(src["focal"]) * 16 / 200)
+    rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads()))
+    assert [r["budget_s"] for r in rows] == [0.2, 0.5]
+    assert rows[0]["clock_s"] >= 0.2 and rows[1]["clock_s"] >= 0.5 and rows[1]["iterations"] > rows[0]["iterations"]
+    assert (tmp_path / "out" / "table.md").is_file()

@@ -1,0 +1,116 @@
+"""``nerfpipe mesh`` on a stand-in run (an analytic sphere model) and ``nerfpipe eval-mesh``."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.cli import main
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.mesh.export import write_ply
+from nerfpipe.mesh.views import look_at
+from nerfpipe.models.base import Model, RenderOutputs
+from nerfpipe.scene import ImageSet, SceneData, Similarity
+
+RADIUS = 0.5
+WORLD_FROM_INPUT = Similarity(torch.eye(3, dtype=torch.float64), torch.tensor([0.2, 0.0, -0.1], dtype=torch.float64), 2.0)
+
+
+class SphereModel(Model):
+    """A radiance field that is a solid sphere: soft density, analytic ray-traced renders."""
+
+    def density_fn(self, points):
+        return 400.0 * torch.sigmoid((RADIUS - points.norm(dim=-1)) / 0.01)
+
+    def rgb_fn(self, points, directions):
+        return torch.tensor([0.2, 0.4, 0.9]).expand(len(points), 3)
+
+    def get_outputs(self, rays, background):
+        b = (rays.origins * rays.directions).sum(-1)
+        disc = b**2 - ((rays.origins**2).sum(-1) - RADIUS**2)
+        hit = disc > 0
+        t = torch.where(hit, -b - disc.clamp(min=0).sqrt(), torch.zeros_like(b))
+        acc = hit.float()
+        rgb = torch.where(hit[..., None], torch.tensor([0.2, 0.4, 0.9]), background)
+        return RenderOutputs(rgb=rgb, depth=t * acc, acc=acc)
+
+
+def sphere_scene(n=12, size=48) -> SceneData:
+    mats = []
+    for k in range(n):
+        a, el = 2 * math.pi * k / n, (0.5 if k % 2 else -0.3)
+        mats.append(look_at(3.0 * np.array([math.cos(a) * math.cos(el), math.sin(a) * math.cos(el), math.sin(el)]), np.zeros(3), np.array([0, 0, 1.0])))
+    f = size / (2 * math.tan(math.radians(20)))
+    cams = Cameras.create(np.stack(mats), f, f, size / 2, size / 2, size, size)
+    return SceneData(cams, ImageSet(array=np.zeros((n, size, size, 3), np.uint8)), {"train": np.arange(n)}, 1.0, 5.0,
+                     torch.tensor([[-1.0] * 3, [1.0] * 3]), WORLD_FROM_INPUT, Path("sphere"), "test")
+
+
+@pytest.fixture
+def fake_run(tmp_path, monkeypatch):
+    import nerfpipe.runs
+
+    monkeypatch.setattr(nerfpipe.runs, "load_run", lambda run_dir, device="cpu": (sphere_scene(), SphereModel(), {}))
+    return tmp_path
+
+
+@pytest.mark.parametrize("method", ["mc", "tsdf"])
+def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, capsys):
+    import trimesh
+
+    assert main(["mesh", str(fake_run), "--method", method, "--resolution", "64", "--faces", "1500", "--tsdf-size", "48", "--level", "200"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    out = fake_run / "mesh"
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.json", "mesh.ply", "mesh_simplified.ply", "mesh_views.png"]
+    full = trimesh.load(out / "mesh.ply", process=False)
+    small = trimesh.load(out / "mesh_simplified.ply", process=False)
+    centre = WORLD_FROM_INPUT.inverse().apply_points(torch.zeros(1, 3, dtype=torch.float64))[0].numpy()
+    radii = np.linalg.norm(full.vertices - centre, axis=1)
+    assert radii.mean() == pytest.approx(RADIUS / 2.0, rel=0.03)  # input units: world / scale 2
+    assert len(small.faces) <= 1500 and figures["hausdorff_max"] > 0
+    assert abs(full.visual.vertex_colors[:, 2].astype(float).mean() - 0.9 * 255) < 15
+
+
+def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--level", "1e6"]) == 2
+    assert "outside the density range" in capsys.readouterr().err
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--faces", "100000000"]) == 2
+    assert "not below" in capsys.readouterr().err
+    assert not (fake_run / "mesh").exists()
+
+
+def test_eval_mesh_cli(tmp_path, capsys):
+    import trimesh
+
+    s = trimesh.creation.icosphere(4)
+    write_ply(TriangleMesh(s.vertices, s.faces), tmp_path / "a.ply")
+    write_ply(TriangleMesh(s.vertices * 1.005, s.faces), tmp_path / "b.ply")
+    assert main(["eval-mesh", str(tmp_path / "b.ply"), str(tmp_path / "a.ply"), "--json", "--samples", "20000"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["fscore"] == 1.0 and r["chamfer_l1"] == pytest.approx(0.005, rel=0.05)
+    assert main(["eval-mesh", str(tmp_path / "b.ply"), str(tmp_path / "missing.ply")]) == 2
+
+
+def test_eval_mesh_against_colmap_points(tmp_path, capsys):
+    """A synthetic COLMAP scene: its gt mesh holds every sparse point; a shifted mesh fewer."""
+    from nerfpipe.synthetic import SynthConfig, generate
+
+    scene = tmp_path / "scene"
+    generate(scene, SynthConfig(views=6, width=32, height=32, num_points=300, min_track_length=2))
+    assert main(["eval-mesh", str(scene / "gt_mesh.ply"), str(scene), "--json", "--samples", "5000"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["points_within_threshold"] == 1.0 and r["gt_mesh_fscore"] == 1.0
+    gt = trimesh_load(scene / "gt_mesh.ply")
+    write_ply(TriangleMesh(gt.vertices + [0.0, 0.0, 0.05], gt.faces), tmp_path / "shifted.ply")
+    assert main(["eval-mesh", str(tmp_path / "shifted.ply"), str(scene), "--json", "--samples", "5000"]) == 0
+    assert json.loads(capsys.readouterr().out)["points_within_threshold"] < 0.9
+
+
+def trimesh_load(path):
+    import trimesh
+
+    return trimesh.load(path, process=False)
