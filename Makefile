@@ -11,5 +11,6 @@ bootstrap:
 demo: bootstrap
 	$(BIN)/nerfpipe demo
 
-test: bootstrap
+test:
+	@bash scripts/bootstrap.sh --test
 	$(BIN)/python -m pytest -q -n 2 $(PYTEST_ARGS)

@@ -93,7 +93,8 @@ def finish(trainer) -> dict:
     if cfg.write_outputs:
         plots.plot_psnr(trainer.history, out / "psnr.png")
         plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
-        plots.plot_cameras(trainer.scene, trainer.model, out / "cameras.png")
+        spr = trainer.model.stats().get("samples_per_ray", 64)
+        plots.plot_cameras(trainer.scene, trainer.sampler, out / "cameras.png", num_samples=int(spr))
     if cfg.video_frames and cfg.write_outputs:
         cams = path_cameras(trainer.scene, "test", cfg.video_frames)
         w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))

@@ -71,24 +71,25 @@ def _frustum_lines(cams, scale: float) -> "list[torch.Tensor]":
     return lines
 
 
-def plot_cameras(scene, model, path: Path, num_rays: int = 100, max_cams: int = 100) -> None:
-    """Training camera frustums, ``num_rays`` random training rays and their sample points in 3D."""
+def plot_cameras(scene, sampler, path: Path, num_samples: int = 64, num_rays: int = 100, max_cams: int = 100) -> None:
+    """Training camera frustums, ``num_rays`` random training rays (from ``sampler``, a
+    :class:`~nerfpipe.pixel_sampler.PixelSampler`) and their stratified sample points in 3D."""
     from nerfpipe.functional.sampling import stratified_samples
-    from nerfpipe.pixel_sampler import PixelSampler
     from nerfpipe.samples import RaySamples
 
     plt = _pyplot()
     cams = scene.split_cameras("train")[: max_cams]
-    batch = PixelSampler(scene, "train").sample(num_rays, torch.Generator().manual_seed(0))
-    num = getattr(getattr(model, "cfg", None), "num_samples", 64)
+    batch = sampler.sample(num_rays, torch.Generator().manual_seed(0))
+    num = num_samples
     near = torch.full((num_rays,), float(scene.near))
     edges = stratified_samples(near, torch.full_like(near, float(scene.far)), num, perturb=True, generator=torch.Generator().manual_seed(0))
-    samples = RaySamples.from_edges(batch.rays.to("cpu"), edges)
+    rays = batch.rays.to("cpu")
+    samples = RaySamples.from_edges(rays, edges)
     fig = plt.figure(figsize=(8, 8))
     ax = fig.add_subplot(projection="3d")
     for line in _frustum_lines(cams, 0.1 * scene.near):
         ax.plot(*line.T.numpy(), color="tab:blue", lw=0.6)
-    o, far_pts = batch.rays.origins, batch.rays.points_at(torch.full((num_rays,), float(scene.far)))
+    o, far_pts = rays.origins, rays.points_at(torch.full((num_rays,), float(scene.far)))
     for a, b in zip(o, far_pts):
         ax.plot(*torch.stack([a, b]).T.numpy(), color="gray", lw=0.3, alpha=0.5)
     p = samples.positions.reshape(-1, 3).numpy()

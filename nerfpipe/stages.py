@@ -47,7 +47,7 @@ RUN_RECORD = "run.json"
 TMP_PREFIX = ".tmp-"
 NOT_NEEDED = "not needed"
 SKIPPED = "skipped"
-DEFAULT_CHAIN = ("sfm", "load", "check", "export")
+DEFAULT_CHAIN = ("sfm", "load", "check", "export", "report")
 """The chain of ``nerfpipe run`` without ``--stages`` or ``--pipeline``."""
 
 log = logging.getLogger("nerfpipe.stages")

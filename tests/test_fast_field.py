@@ -135,3 +135,4 @@ def test_tiny_training_run_learns(tiny_scene, tmp_path):
     assert val[-1][2] > val[0][2] + 5.0, val  # well above the untrained start
     assert 0 < metrics["occupied_fraction"] < 1
     assert metrics["samples_per_ray"] > 0
+    assert trainer.optimizer.param_groups[0]["lr"] < model.grid_lr  # the model's schedule reached the optimiser

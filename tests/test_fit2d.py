@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from nerfpipe.cli import main
 from nerfpipe.encoders import GridEncoderConfig, PositionalEncoderConfig
 from nerfpipe.functional.encoding import nyquist_frequencies, positional_encoding, positional_encoding_dim
-from nerfpipe.image_field import ImageFieldConfig, TrainConfig, fit_image, pixel_grid
+from nerfpipe.image_field import fit_image, pixel_grid
 from nerfpipe.image_field.fit2d_run import configure
 
 

@@ -79,6 +79,7 @@ def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
     assert main(["mesh", str(fake_run), "--resolution", "32", "--level", "1e6"]) == 2
     assert "outside the density range" in capsys.readouterr().err
     assert main(["mesh", str(fake_run), "--resolution", "32", "--faces", "100000000"]) == 2
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "depth", "--level", "1e6"]) == 2
     assert "not below" in capsys.readouterr().err
     assert not (fake_run / "mesh").exists()
 
@@ -114,3 +115,9 @@ def trimesh_load(path):
     import trimesh
 
     return trimesh.load(path, process=False)
+
+
+def test_level_from_rendered_depth(fake_run, capsys):
+    assert main(["mesh", str(fake_run), "--resolution", "48", "--level-from", "depth", "--faces", "1000"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["level"] == pytest.approx(200.0, rel=0.15)  # the sphere model's density is 200 on its surface

@@ -108,3 +108,16 @@ def test_bad_box_and_resolution():
         extract_mesh(soft_sphere, torch.tensor([[0.0, 0, 0], [1.0, 0, 1]]), resolution=16)
     with pytest.raises(NerfpipeError, match="resolution"):
         extract_mesh(soft_sphere, BOX, resolution=4)
+
+
+def test_level_from_surface_points_puts_the_surface_on_them():
+    from nerfpipe.mesh.extract import level_from_surface_points
+
+    dirs = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    jitter = 0.004 * torch.randn(500, generator=torch.Generator().manual_seed(1))
+    level = level_from_surface_points(soft_sphere, dirs * (R + jitter)[:, None])
+    assert level == pytest.approx(50.0, rel=0.1)  # soft_sphere is peak / 2 = 50 on the sphere
+    r = extract_mesh(soft_sphere, BOX, resolution=64, level=level)
+    assert np.linalg.norm(r.mesh.vertices, axis=1).mean() == pytest.approx(R, abs=0.003)
+    with pytest.raises(NerfpipeError, match="no opaque"):
+        level_from_surface_points(soft_sphere, torch.zeros(0, 3))

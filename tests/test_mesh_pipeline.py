@@ -74,3 +74,14 @@ def test_files_list_is_what_gets_written(tmp_path):
     out = build_meshes(MeshConfig(resolution=32, remove_unseen=False), BOX, density_fn=blob)
     write_meshes(out, tmp_path, Similarity())
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(FILES)
+
+
+def test_public_names_resolve_and_heavy_libraries_stay_lazy():
+    import subprocess
+    import sys
+
+    import nerfpipe.mesh as mesh
+
+    assert all(hasattr(mesh, name) for name in mesh.__all__)
+    code = "import sys, nerfpipe.mesh; print(sorted(m for m in ('open3d', 'pymeshlab', 'skimage', 'trimesh') if m in sys.modules))"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"

@@ -1,7 +1,6 @@
 """mesh_views.png: four ray-cast views, shaded and coloured."""
 
 import numpy as np
-import pytest
 
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.views import look_at, orbit_cameras, render_views, write_views

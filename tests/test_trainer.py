@@ -16,6 +16,16 @@ from nerfpipe.trainer import Trainer, TrainerConfig
 SIZE = 16
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models are dominated by per-op overhead; a second thread only adds spin-waits (and is
+    much slower on a shared, oversubscribed machine)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _shrink(images: np.ndarray) -> np.ndarray:
     t = torch.from_numpy(images).permute(0, 3, 1, 2).float()
     return F.interpolate(t, size=(SIZE, SIZE), mode="area").round().clamp(0, 255).byte().permute(0, 2, 3, 1).numpy()
@@ -106,3 +116,19 @@ def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     assert (run / "renders" / "depth_orbit.gif").is_file() and (run / "renders" / "orbit.mp4").is_file()
     assert main(["render", str(run), "--size", "12"]) == 2  # bad size: one-line user error
     assert "--size must be WxH" in capsys.readouterr().err
+
+
+def test_rgba_targets_use_the_batch_background():
+    from nerfpipe.pixel_sampler import background_colors, composite_pixels
+    from nerfpipe.trainer import backgrounds
+
+    px = torch.tensor([[255, 0, 0, 255], [0, 255, 0, 0], [0, 0, 255, 128]], dtype=torch.uint8)
+    bg = background_colors("random", 3, torch.Generator().manual_seed(0))
+    out = composite_pixels(px, bg)
+    torch.testing.assert_close(out[0], torch.tensor([1.0, 0.0, 0.0]))  # opaque: its own colour
+    torch.testing.assert_close(out[1], bg[1])  # transparent: the background
+    a = 128 / 255
+    torch.testing.assert_close(out[2], torch.tensor([0.0, 0.0, a]) + (1 - a) * bg[2])
+    assert not torch.equal(bg[0], bg[1])  # random per ray
+    assert backgrounds("auto", True) == ("random", "white") and backgrounds("auto", False) == ("black", "black")
+    assert background_colors("white", 2).tolist() == [[1.0, 1.0, 1.0]] * 2

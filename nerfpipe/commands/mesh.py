@@ -13,6 +13,7 @@ def mesh(
     resolution: int = 256,
     faces: "int | None" = None,
     level: "float | None" = None,
+    level_from: Literal["opacity", "depth"] = "opacity",
     min_component: float = 0.05,
     remove_unseen: bool = True,
     close_holes: int = 0,
@@ -33,7 +34,9 @@ def mesh(
         method: mc (marching cubes on the density) or tsdf (fuse depth rendered from training views).
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).
-        level: density iso-level for mc (default ln 2 / voxel size: one voxel half opaque).
+        level: density iso-level for mc (default: chosen by --level-from).
+        level-from: automatic level: opacity (ln 2 / voxel size, one voxel half opaque) or depth
+            (the median density where rays of rendered training views end).
         min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters).
         remove_unseen: drop faces no training camera sees.
         close_holes: fill holes of at most this many edges (0: off).
@@ -52,16 +55,17 @@ def mesh(
     from nerfpipe.runs import load_run
 
     scene, model, _ = load_run(Path(run_dir), device)
-    cfg = MeshConfig(method=method, resolution=resolution, level=level, faces=faces, min_component=min_component,
+    cfg = MeshConfig(method=method, resolution=resolution, level=level, level_from=level_from, faces=faces, min_component=min_component,
                      remove_unseen=remove_unseen, close_holes=close_holes, colors=colors)
     aabb, occupancy_fn = _box_and_occupancy(model, scene.aabb)
     train = scene.split_cameras("train")
     frame_fn, tsdf_cams = (None, None)
     if method == "tsdf":
         tsdf_cams, frame_fn = _tsdf_frames(model, train, tsdf_views, tsdf_size, chunk, device)
+    points = _surface_points(model, train, chunk, device) if method == "mc" and level is None and level_from == "depth" else None
     with torch.no_grad():
         result = build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn,
-                              frame_fn=frame_fn, cameras=tsdf_cams if tsdf_cams is not None else train)
+                              frame_fn=frame_fn, cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points)
     paths = write_meshes(result, Path(out) if out is not None else Path(run_dir) / "mesh", scene.world_from_input)
     print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()]}, indent=2))
     return 0
@@ -78,6 +82,23 @@ def _box_and_occupancy(model, scene_aabb):
     cell = (grid.aabb[1] - grid.aabb[0]).float().cpu() / grid.cfg.resolution
     box = torch.stack([torch.maximum(box[0] - cell, grid.aabb[0].cpu()), torch.minimum(box[1] + cell, grid.aabb[1].cpu())])
     return box, lambda p: grid.occupied(p.to(grid.aabb.device))
+
+
+def _surface_points(model, train, chunk: int, device: str, views: int = 8, size: int = 128):
+    """Where the rays of a few rendered training views end (opaque pixels only), world frame."""
+    import torch
+
+    from nerfpipe.rays import camera_rays
+    from nerfpipe.render import render_cameras, resize_cameras
+
+    idx = torch.linspace(0, len(train) - 1, min(views, len(train))).round().long().unique()
+    cams = _resize_each(train[idx], size / torch.maximum(train[idx].width, train[idx].height).double(), resize_cameras)
+    pts = []
+    for i, view in enumerate(render_cameras(model, cams.to(device), chunk)):
+        rays = camera_rays(cams, i)
+        opaque = view.acc.cpu() > 0.9
+        pts.append(rays.points_at(view.surface_depth.cpu())[opaque])
+    return torch.cat(pts)
 
 
 def _tsdf_frames(model, train, views: int, size: int, chunk: int, device: str):

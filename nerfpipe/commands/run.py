@@ -101,7 +101,7 @@ def run(
 
     Args:
         path: dataset (COLMAP folder, transforms.json, .npz) or a folder of photos (SfM runs first).
-        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,export).
+        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,export,report).
         pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each.
         out: run folder (default: ``runs/<input name>``).
         time_budget: seconds the whole run may take (stages that can, stop early).

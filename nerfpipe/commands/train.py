@@ -22,6 +22,7 @@ def train(
     background: str = "auto",
     seed: int = 0,
     device: str = "cpu",
+    threads: "int | None" = None,
     resume: bool = False,
 ) -> int:
     """Train a NeRF on a dataset (any format data_adapters.load reads).
@@ -43,6 +44,7 @@ def train(
         background: black | white | random | auto (random for RGBA training, else black).
         seed: random seed (CPU runs are deterministic).
         device: torch device.
+        threads: CPU threads for torch (default: torch's choice).
         resume: continue from the run folder's checkpoint.
     """
     import dataclasses
@@ -60,7 +62,7 @@ def train(
     cfg = TrainerConfig(
         iters=iters, time_budget=time_budget, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every,
         eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
-        video_scale=video_scale, background=background, seed=seed, device=device, resume=resume,
+        video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
     out = Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}"
     metrics = Trainer(cfg, scene, model, model_cfg, out).train()

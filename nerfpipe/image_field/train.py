@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from nerfpipe.encoders import GridEncoder, is_static
-from nerfpipe.image_field.field import ImageField, ImageFieldConfig
+from nerfpipe.image_field.field import ImageFieldConfig
 from nerfpipe.typing import Float, Tensor, UInt8
 
 

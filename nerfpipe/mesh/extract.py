@@ -9,7 +9,8 @@ renderer gives one a meaning: a ray crossing a slab of thickness ``h`` with dens
 blocked with probability ``1 - exp(-σ h)``. The default level is the density at which one
 voxel of the extraction grid is half opaque, ``σ = ln 2 / h``: a surface the mesh resolves
 is one a ray stops at within one voxel. It grows with the resolution, as a finer grid can
-resolve thinner (denser) shells. Pass ``level`` to override it.
+resolve thinner (denser) shells. Pass ``level`` to override it, or take it from rendered
+depth with :func:`level_from_surface_points` (the median density where rendered rays end).
 """
 
 import math
@@ -41,6 +42,24 @@ def auto_level(voxel_size: float, opacity: float = 0.5) -> float:
     if not 0.0 < opacity < 1.0:
         raise NerfpipeError(f"level opacity must be in (0, 1), got {opacity}")
     return -math.log1p(-opacity) / voxel_size
+
+
+@torch.no_grad()
+def level_from_surface_points(density_fn: DensityFn, points: Float[Tensor, "num_points 3"], chunk: int = 1 << 18) -> float:
+    """The level whose iso-surface passes through rendered surface points: their median density.
+
+    ``points`` are where rays terminate (``origin + direction * depth / acc`` of rendered
+    training views, opaque pixels only). Along a ray the density rises through the surface, so
+    the iso-surface at the density found at these points agrees with the rendered depth; the
+    median makes it robust to pixels whose expected depth falls in front of or behind it.
+    """
+    if len(points) == 0:
+        raise NerfpipeError("no opaque rendered pixel to take the surface level from")
+    dens = torch.cat([density_fn(p).reshape(-1).float().cpu() for p in points.split(chunk)])
+    level = float(dens.median())
+    if not level > 0:
+        raise NerfpipeError("the density at the rendered surface is zero: cannot choose a level from depth")
+    return level
 
 
 @dataclass

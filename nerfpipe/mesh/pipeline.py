@@ -7,15 +7,12 @@ is written until every mesh is built, so bad input leaves no files behind.
 """
 
 import json
-import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-import torch
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
@@ -23,7 +20,7 @@ from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_co
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
-from nerfpipe.mesh.extract import DensityFn, OccupancyFn, extract_mesh
+from nerfpipe.mesh.extract import DensityFn, OccupancyFn, extract_mesh, level_from_surface_points
 from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
 from nerfpipe.scene import Similarity
@@ -42,7 +39,9 @@ class MeshConfig:
     resolution: int = 256
     """Grid samples along the longest side of the box (mc), or TSDF voxels along it (tsdf)."""
     level: "float | None" = None
-    """Density iso-level (mc); default: the density at which one voxel is half opaque, ln 2 / h."""
+    """Density iso-level (mc); default: chosen by ``level_from``."""
+    level_from: Literal["opacity", "depth"] = "opacity"
+    """Automatic level: opacity (one voxel half opaque, ln 2 / h) or depth (median density where rendered rays end)."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
     min_component: float = 0.05
@@ -66,11 +65,16 @@ class MeshOutputs:
     figures: dict = field(default_factory=dict)
 
 
-def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, figures) -> TriangleMesh:
+def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface_points, figures) -> TriangleMesh:
     if cfg.method == "mc":
         if density_fn is None:
             raise NerfpipeError("marching cubes needs a density field")
-        res = extract_mesh(density_fn, aabb, cfg.resolution, cfg.level, occupancy_fn, cfg.chunk)
+        level = cfg.level
+        if level is None and cfg.level_from == "depth":
+            if surface_points is None:
+                raise NerfpipeError("a level from depth needs rendered surface points")
+            level = level_from_surface_points(density_fn, surface_points, cfg.chunk)
+        res = extract_mesh(density_fn, aabb, cfg.resolution, level, occupancy_fn, cfg.chunk)
         figures.update(level=res.level, voxel_size=res.voxel_size, evaluated_fraction=res.evaluated_fraction)
         return res.mesh
     if frame_fn is None or cameras is None:
@@ -116,6 +120,7 @@ def build_meshes(
     occupancy_fn: "OccupancyFn | None" = None,
     frame_fn: "FrameFn | None" = None,
     cameras: "Cameras | None" = None,
+    surface_points: "Float[Tensor, 'num_points 3'] | None" = None,
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify, all in the world frame; writes nothing.
 
@@ -127,12 +132,13 @@ def build_meshes(
         occupancy_fn: skip test for empty space (mc).
         frame_fn: depth and colour per camera index (tsdf).
         cameras: the training cameras (tsdf input; unseen-face removal).
+        surface_points: where rendered rays end (mc with ``level_from="depth"``).
     """
     if cfg.faces is not None and cfg.faces < 4:
         raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
     figures: dict = {"method": cfg.method}
     t0 = time.perf_counter()
-    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, figures)
+    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface_points, figures)
     t1 = time.perf_counter()
     mesh = _clean(mesh, cfg, cameras, figures)
     if cfg.colors and cfg.method == "mc" and rgb_fn is not None:

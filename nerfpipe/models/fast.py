@@ -54,10 +54,14 @@ class FastConfig:
     """Override the preset's colour features per vertex and level."""
     hidden: "int | None" = None
     """Override the preset's colour MLP width."""
-    grid_lr: float = 0.05
-    """Adam learning rate of the grid tables."""
+    grid_lr: float = 1.0
+    """Adam learning rate of the grid tables (high: each step moves a vertex by about this much)."""
     mlp_lr: float = 5e-3
     """Adam learning rate of the colour MLP."""
+    lr_decay_steps: int = 2000
+    """Learning rates fall tenfold every this many steps (exponentially; 0: constant)."""
+    lr_min_factor: float = 0.03
+    """Learning rates never fall below this fraction of their start."""
     step_ratio: float = 0.5
     """Sample spacing along rays, in voxels of the finest level."""
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
@@ -127,6 +131,7 @@ class FastModel(Model):
         self.register_buffer("march_box", aabb.clone())
         self._samples_per_ray = 0.0
         self._step = 0
+        self._groups: "list[dict]" = []
         _install_hook()
 
     def _resolutions(self, aabb: Float[Tensor, "2 3"]) -> "list[tuple[int, int, int]]":
@@ -213,6 +218,15 @@ class FastModel(Model):
             self.march_box.copy_(self.grid.occupied_aabb())
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
+        self._decay_lr(step)
+
+    def _decay_lr(self, step: int) -> None:
+        """Exponential decay of the groups handed to the optimiser (it keeps the same dicts)."""
+        if not self.cfg.lr_decay_steps:
+            return
+        factor = max(self.cfg.lr_min_factor, 0.1 ** (step / self.cfg.lr_decay_steps))
+        for group, base in zip(self._groups, (self.cfg.grid_lr, self.cfg.mlp_lr)):
+            group["lr"] = base * factor
 
     @torch.no_grad()
     def tighten(self) -> None:
@@ -244,10 +258,12 @@ class FastModel(Model):
 
     def param_groups(self) -> "list[dict]":
         grids = list(self.field.density_grid.parameters()) + list(self.field.feature_grid.parameters())
-        return [
-            {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15},
-            {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15},
+        fused = {"fused": True} if self.field.aabb.device.type in ("cpu", "cuda") else {}  # ~10x faster Adam on big grids
+        self._groups = [
+            {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15, **fused},
+            {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15, **fused},
         ]
+        return self._groups
 
     def stats(self) -> "dict[str, float]":
         out = {k: float(v) for k, v in super().stats().items()}

@@ -1,0 +1,458 @@
+"""``report.html``: one self-contained page summarising a run folder.
+
+The page reads whatever the stages left in the run folder and never fails on a missing or
+unreadable artifact: such an artifact is shown as "not produced" and listed at the end.
+
+Sections: key figures, scene and convention check, training metrics and PSNR curves, novel views
+(orbit and depth GIFs), speed against error (a ``nerfpipe bench`` table), mesh, cameras, stage
+timings. Images are embedded as base64 ``data:`` URIs so the file can be moved or mailed; an
+image larger than ``max_embed_mb`` is linked by its path relative to the report instead. No
+external resources (fonts, scripts, CDNs) are used.
+
+Glossary:
+    run_dir   the run folder of ``nerfpipe run``
+    page      :class:`Page`: where the sections look things up, and what they found missing
+"""
+
+import base64
+import datetime
+import html
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPORT_FILE = "report.html"
+
+# Where each artifact may be, first match wins (globs relative to the run folder).
+SCENE_JSON = ("scene.json",)
+CHECK_JSON = ("check.json", "check.failed.json")
+TRAIN_METRICS = ("train/metrics.json", "metrics.json")
+PSNR_PNG = ("train/psnr.png", "psnr.png")
+PROGRESS_PNG = ("train/progress.png", "progress.png")
+CAMERAS_PNG = ("train/cameras.png", "cameras.png")
+RENDER_JSON = ("render/orbit.json", "render/test.json")
+ORBIT_GIF = ("render/orbit.gif", "render/test.gif", "train/orbit.gif", "orbit.gif")
+DEPTH_GIF = ("render/depth_orbit.gif", "render/depth_test.gif", "train/depth_orbit.gif", "depth_orbit.gif")
+ORBIT_MP4 = ("render/orbit.mp4", "render/test.mp4", "train/orbit.mp4", "orbit.mp4")
+MESH_JSON = ("mesh/mesh.json", "mesh.json", "*/mesh.json")
+MESH_VIEWS = ("mesh/mesh_views.png", "mesh_views.png", "*/mesh_views.png")
+MESH_EVAL = ("mesh/mesh_metrics.json", "mesh/eval.json", "mesh/metrics.json", "mesh_metrics.json", "*/mesh_eval*.json")
+BENCH_JSON = ("table.json",)
+BENCH_MD = ("table.md",)
+BENCH_PNG = ("psnr_vs_seconds.png",)
+
+# Labels (and units) of the figures the stages write; other keys are shown under their own name.
+LABELS = {
+    "val_psnr": ("val PSNR", "dB"), "train_psnr": ("train PSNR", "dB"), "val_ssim": ("val SSIM", ""),
+    "val_views": ("val views", ""), "eval_scale": ("eval resolution factor", ""),
+    "train_seconds": ("training time", "s"), "iterations": ("iterations", ""),
+    "seconds_per_iteration": ("time per iteration", "s"), "rays_per_step": ("rays per step", ""),
+    "model": ("model", ""), "model_params": ("parameters", ""), "model_mb": ("model size", "MB"),
+    "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
+    "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),
+    "recall": ("recall", ""), "accuracy": ("accuracy", ""), "completeness": ("completeness", ""),
+    "faces": ("faces", ""), "faces_simplified": ("faces (simplified)", ""), "vertices": ("vertices", ""),
+    "hausdorff_max": ("Hausdorff max (simplification)", ""), "num_cameras": ("cameras", ""),
+    "kornia_max_px": ("kornia projection max error", "px"),
+    "kornia_unproject_max_px": ("kornia unprojection max error", "px"), "num_probes": ("probe pixels", ""),
+    "rotation_orthonormality_err": ("rotation orthonormality error", ""), "roundtrip_max_px": ("round-trip max error", "px"),
+    "facing_fraction": ("cameras facing the box", ""), "reproj_mean_px": ("reprojection error (mean)", "px"),
+}  # fmt: skip
+
+
+@dataclass
+class ReportConfig:
+    """Options of the HTML report (the ``report`` stage)."""
+
+    title: "str | None" = None
+    """Page title; default: "nerfpipe report: <input name>"."""
+    max_embed_mb: float = 4.0
+    """Images up to this size are embedded in the page; larger ones are linked by relative path."""
+    bench_dir: "str | None" = None
+    """Folder of a ``nerfpipe bench`` result to include; default: ``bench/`` in the run folder."""
+
+
+@dataclass
+class Page:
+    """What the section builders share: the run folder, the options and what was not produced."""
+
+    run_dir: Path
+    config: ReportConfig = field(default_factory=ReportConfig)
+    out_dir: "Path | None" = None
+    """Folder the report is written to (relative links start here); default: the run folder."""
+    missing: "list[str]" = field(default_factory=list)
+
+    def find(self, candidates: "tuple[str, ...]", root: "Path | None" = None) -> "Path | None":
+        """First existing file among the candidate globs (relative to ``root``, default the run folder)."""
+        root = self.run_dir if root is None else root
+        for pattern in candidates:
+            hits = sorted(p for p in root.glob(pattern) if p.is_file())
+            if hits:
+                return hits[0]
+        return None
+
+    def json(self, candidates: "tuple[str, ...]", what: str, root: "Path | None" = None) -> "dict | None":
+        """The first candidate's JSON object; None (recorded as missing) when absent or unreadable."""
+        path = self.find(candidates, root)
+        data = read_json(path) if path is not None else None
+        if data is None:
+            self.missing.append(f"{what} ({candidates[0]}{'' if path is None else ': unreadable'})")
+        return data
+
+
+def read_json(path: Path) -> "dict | None":
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+# ---------------------------------------------------------------- formatting
+
+
+def esc(value: object) -> str:
+    return html.escape(str(value), quote=True)
+
+
+def fmt(value: object) -> str:
+    """A figure as short text: 4 significant digits, thousands separators, lists joined."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if value != value:
+            return "nan"
+        return f"{value:,.0f}" if abs(value) >= 1e4 else f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        text = ", ".join(fmt(v) for v in value) if len(value) <= 6 else json.dumps(value)
+        return text if len(text) <= 120 else text[:117] + "..."
+    if isinstance(value, dict):
+        text = json.dumps(value)
+        return text if len(text) <= 120 else text[:117] + "..."
+    return "—" if value is None else str(value)
+
+
+def label(key: str) -> str:
+    name, unit = LABELS.get(key, (key.replace("_", " "), ""))
+    return f"{name} ({unit})" if unit else name
+
+
+def kv_table(data: dict, keys: "list[str] | None" = None) -> str:
+    """Two-column table of ``data`` (the given keys that exist, default all scalar-ish keys)."""
+    keys = [k for k in (keys if keys is not None else list(data)) if k in data]
+    rows = "".join(f"<tr><th>{esc(label(k))}</th><td>{esc(fmt(data[k]))}</td></tr>" for k in keys)
+    return f'<table class="kv">{rows}</table>' if rows else ""
+
+
+def table(header: "list[str]", rows: "list[list[str]]", cls: str = "grid") -> str:
+    """A table of already escaped cells."""
+    head = "".join(f"<th>{h}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows)
+    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def not_produced(what: str) -> str:
+    return f'<div class="absent">{esc(what)}: not produced</div>'
+
+
+# ---------------------------------------------------------------- images
+
+MIME = {".png": "image/png", ".gif": "image/gif", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".webp": "image/webp"}
+
+
+def image_src(path: Path, page: Page) -> "tuple[str, bool]":
+    """(``src`` value, embedded?): a data URI, or the path relative to the report when too large."""
+    if path.stat().st_size <= page.config.max_embed_mb * 2**20:
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        return f"data:{MIME.get(path.suffix.lower(), 'application/octet-stream')};base64,{data}", True
+    rel = os.path.relpath(path.resolve(), (page.out_dir or page.run_dir).resolve())
+    return Path(rel).as_posix(), False
+
+
+def figure(page: Page, candidates: "tuple[str, ...]", what: str, caption: str = "", cls: str = "", root: "Path | None" = None) -> str:
+    """An ``<figure>`` with the first candidate image, or a "not produced" note (recorded as missing)."""
+    path = page.find(candidates, root)
+    if path is None:
+        page.missing.append(f"{what} ({candidates[0]})")
+        return not_produced(what)
+    src, embedded = image_src(path, page)
+    rel = path.relative_to(root or page.run_dir).as_posix()
+    note = "" if embedded else f" — linked, {path.stat().st_size / 2**20:.1f} MB"
+    text = f"<b>{esc(what)}</b> <code>{esc(rel)}</code>{note}" + (f"<br>{esc(caption)}" if caption else "")
+    return f'<figure class="{cls}"><img src="{src}" alt="{esc(what)}"><figcaption>{text}</figcaption></figure>'
+
+
+def section(anchor: str, title: str, body: str) -> str:
+    return f'<section id="{anchor}"><h2>{esc(title)}</h2>{body}</section>'
+
+
+# ---------------------------------------------------------------- sections
+
+
+def key_figures(metrics: "dict | None", check: "dict | None", mesh: "dict | None") -> str:
+    """A row of cards with the headline figures that exist."""
+    cards = []
+    for data, keys in ((metrics, ("val_psnr", "val_ssim", "train_seconds", "iterations", "model_mb", "samples_per_ray")),
+                       (mesh, ("fscore", "chamfer_l1", "faces"))):  # fmt: skip
+        for key in keys:
+            if data and isinstance(data.get(key), (int, float)):
+                name, unit = LABELS.get(key, (key, ""))
+                cards.append((fmt(data[key]), unit, name, ""))
+    if check is not None:
+        bad = check.get("failures") or []
+        cards.append(("broken" if bad else "OK", "", "camera conventions", "bad" if bad else "good"))
+    if not cards:
+        return ""
+    html_cards = "".join(
+        f'<div class="card {cls}"><div class="v">{esc(v)}<small> {esc(u)}</small></div><div class="k">{esc(k)}</div></div>'
+        for v, u, k, cls in cards
+    )
+    return f'<div class="cards">{html_cards}</div>'
+
+
+def _scene_rows(scene: dict) -> dict:
+    """scene.json with its lists written the way people read them."""
+    out = dict(scene)
+    if isinstance(scene.get("splits"), dict):
+        out["splits"] = ", ".join(f"{k} {v}" for k, v in scene["splits"].items())
+    if isinstance(scene.get("image_sizes"), list):
+        out["image_sizes"] = ", ".join("×".join(str(n) for n in s) for s in scene["image_sizes"] if isinstance(s, list))
+    if isinstance(scene.get("aabb"), list):
+        out["aabb"] = " to ".join("(" + ", ".join(f"{x:.3g}" for x in c) + ")" for c in scene["aabb"] if isinstance(c, list))
+    return out
+
+
+SCENE_KEYS = ["input", "adapter", "num_cameras", "splits", "image_sizes", "camera_models", "near", "far", "aabb", "num_points", "has_alpha"]
+CHECK_KEYS = ["num_cameras", "num_probes", "kornia_max_px", "kornia_unproject_max_px", "roundtrip_max_px", "facing_fraction",
+              "reproj_mean_px", "reproj_median_px", "colmap_reported_mean_px", "points_in_front_fraction"]  # fmt: skip
+
+
+def scene_section(scene: "dict | None", check: "dict | None") -> str:
+    left = kv_table(_scene_rows(scene), SCENE_KEYS) if scene is not None else not_produced("scene summary (scene.json)")
+    if check is None:
+        right = not_produced("convention check (check.json)")
+    else:
+        bad = check.get("failures") or []
+        status = (f'<p class="status bad">conventions broken: {esc("; ".join(map(str, bad)))}</p>' if bad
+                  else '<p class="status good">camera conventions consistent with kornia and the round trip</p>')  # fmt: skip
+        right = status + kv_table({k: v for k, v in check.items() if v is not None}, CHECK_KEYS)
+    return section("scene", "Scene and convention check", f'<div class="cols"><div><h3>Scene</h3>{left}</div><div><h3>Check</h3>{right}</div></div>')
+
+
+def training_section(page: Page, metrics: "dict | None") -> str:
+    if metrics is None:
+        body = not_produced("training metrics (train/metrics.json)")
+    else:
+        flat = {k: v for k, v in metrics.items() if not isinstance(v, dict) and k != "depth_colormap"}
+        body = kv_table(flat)
+    curves = figure(page, PSNR_PNG, "PSNR curves", "train (per batch) and validation PSNR against iterations and seconds", "wide")
+    progress = figure(page, PROGRESS_PNG, "validation view during training", cls="wide")
+    return section("training", "Training", f"<h3>Metrics</h3>{body}{curves}{progress}")
+
+
+def _link(page: Page, candidates: "tuple[str, ...]", text: str) -> str:
+    path = page.find(candidates)
+    if path is None:
+        return ""
+    rel = os.path.relpath(path.resolve(), (page.out_dir or page.run_dir).resolve())
+    return f'<p class="note"><a href="{esc(Path(rel).as_posix())}">{esc(text)}</a> (linked, not embedded)</p>'
+
+
+def views_section(page: Page) -> str:
+    info = read_json(p) if (p := page.find(RENDER_JSON)) is not None else None
+    info = info or {}
+    size = info.get("size")
+    caption = f"{info['frames']} frames of {size[0]}×{size[1]}" if "frames" in info and isinstance(size, list) else ""
+    colour = figure(page, ORBIT_GIF, "orbit (colour)", caption, "gif")
+    depth = figure(page, DEPTH_GIF, "orbit (depth)", info.get("depth_mapping", ""), "gif")
+    mp4 = _link(page, ORBIT_MP4, "orbit video (MP4)")
+    return section("views", "Novel views", f'<div class="row">{colour}{depth}</div>{mp4}')
+
+
+BENCH_COLUMNS = [("preset", "preset"), ("budget_s", "budget (s)"), ("train_s", "train (s, wall)"), ("iterations", "iterations"),
+                 ("val_psnr", "val PSNR (dB)"), ("val_ssim", "SSIM"), ("model_mb", "MB"), ("samples_per_ray", "samples/ray")]  # fmt: skip
+
+
+def bench_table(rows: "list[dict]") -> str:
+    """The bench rows; the best PSNR of each budget in bold."""
+    best: dict = {}
+    for r in rows:
+        if isinstance(r.get("val_psnr"), (int, float)):
+            best[r.get("budget_s")] = max(best.get(r.get("budget_s"), float("-inf")), r["val_psnr"])
+    cells = []
+    for r in rows:
+        row = [esc(fmt(r.get(k))) for k, _ in BENCH_COLUMNS]
+        if r.get("val_psnr") is not None and r.get("val_psnr") == best.get(r.get("budget_s")):
+            row[4] = f"<b>{row[4]}</b>"
+        cells.append(row)
+    return table([esc(h) for _, h in BENCH_COLUMNS], cells, "grid num")
+
+
+def bench_section(page: Page) -> str:
+    root = Path(page.config.bench_dir) if page.config.bench_dir else page.run_dir / "bench"
+    doc = read_json(p) if (p := page.find(BENCH_JSON, root)) is not None else None
+    if doc is not None and isinstance(doc.get("rows"), list):
+        body = f"<p>scene: {esc(doc.get('scene', '?'))}; best val PSNR per budget in bold</p>" + bench_table(doc["rows"])
+    elif (md := page.find(BENCH_MD, root)) is not None:
+        body = f"<pre>{esc(md.read_text())}</pre>"
+    else:
+        page.missing.append(f"speed-against-error table ({root.name}/table.json)")
+        body = not_produced("speed-against-error table (nerfpipe bench: table.json)")
+    body += figure(page, BENCH_PNG, "val PSNR against training seconds", cls="wide", root=root) if root.is_dir() else ""
+    return section("bench", "Speed against error", body)
+
+
+MESH_KEYS = ["method", "faces", "vertices", "faces_simplified", "hausdorff_max", "hausdorff_mean", "level", "voxel_size",
+             "unseen_faces_removed", "floater_faces_removed", "seconds_extract", "seconds_clean_color", "seconds_simplify"]  # fmt: skip
+MESH_EVAL_KEYS = ["fscore", "precision", "recall", "chamfer_l1", "accuracy", "completeness", "normal_consistency", "threshold", "reference"]
+
+
+def mesh_section(page: Page, mesh: "dict | None", evaluation: "dict | None") -> str:
+    left = kv_table(mesh, MESH_KEYS) if mesh is not None else not_produced("mesh figures (mesh.json)")
+    if evaluation is not None:
+        left += "<h3>Against the reference</h3>" + kv_table(evaluation, MESH_EVAL_KEYS)
+    views = figure(page, MESH_VIEWS, "mesh from four views")
+    return section("mesh", "Mesh", f'<div class="cols"><div>{left}</div><div>{views}</div></div>')
+
+
+def cameras_section(page: Page) -> str:
+    return section("cameras", "Cameras", figure(page, CAMERAS_PNG, "training cameras, rays and samples", cls="square"))
+
+
+def stage_markers(run_dir: Path, chain: "list[str]") -> "list[dict]":
+    """The ``stages/*.done.json`` markers, in chain order, then the others by finishing time."""
+    markers = [m for p in sorted((run_dir / "stages").glob("*.done.json")) if (m := read_json(p)) is not None]
+    order = {name: i for i, name in enumerate(chain)}
+    return sorted(markers, key=lambda m: (order.get(m.get("stage"), len(order)), m.get("finished_at", 0.0)))
+
+
+def timings_section(markers: "list[dict]") -> str:
+    if not markers:
+        return section("timings", "Stage timings", not_produced("stage markers (stages/*.done.json)"))
+    seconds = [float(m.get("seconds") or 0.0) for m in markers]
+    longest = max(max(seconds), 1e-9)
+    rows = [
+        [esc(m.get("stage", "?")), esc(m.get("status", "?")), esc(f"{s:.1f}"),
+         f'<div class="bar" style="width:{100 * s / longest:.1f}%"></div>', esc(m.get("finished", ""))]
+        for m, s in zip(markers, seconds)
+    ]  # fmt: skip
+    rows.append(["<b>total</b>", "", f"<b>{sum(seconds):.1f}</b>", "", ""])
+    return section("timings", "Stage timings", table(["stage", "status", "seconds", "", "finished"], rows, "grid timings"))
+
+
+def missing_section(missing: "list[str]") -> str:
+    if not missing:
+        return section("missing", "Not produced", "<p>Every artifact the report looks for was found.</p>")
+    items = "".join(f"<li>{esc(m)}</li>" for m in dict.fromkeys(missing))
+    return section("missing", "Not produced", f"<p>These artifacts are not in the run folder (their stages did not run, or wrote nothing):</p><ul>{items}</ul>")
+
+
+NAV = [("scene", "Scene"), ("training", "Training"), ("views", "Novel views"), ("bench", "Speed/error"),
+       ("mesh", "Mesh"), ("cameras", "Cameras"), ("timings", "Timings"), ("missing", "Not produced")]  # fmt: skip
+
+
+def header(title: str, run_dir: Path, run: dict, scene: "dict | None") -> str:
+    source = run.get("source") or (scene or {}).get("input") or "in-memory input"
+    chain = " → ".join(map(str, run.get("chain", []))) or "unknown"
+    when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    nav = "".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in NAV)
+    return (f"<header><div class='inner'><h1>{esc(title)}</h1><p class='meta'>input <code>{esc(source)}</code><br>"
+            f"run folder <code>{esc(run_dir.resolve())}</code><br>chain {esc(chain)} · generated {esc(when)}</p>"
+            f"<nav>{nav}</nav></div></header>")  # fmt: skip
+
+
+def default_title(scene: "dict | None", run: dict, run_dir: Path) -> str:
+    source = (scene or {}).get("input") or run.get("source")
+    return f"nerfpipe report: {Path(source).stem if source else run_dir.resolve().name}"
+
+
+def mesh_evaluation(page: Page, mesh: "dict | None") -> "dict | None":
+    """Geometry metrics against a reference: a metrics file of the mesh stage, or mesh.json itself."""
+    path = page.find(MESH_EVAL)
+    data = read_json(path) if path is not None else None
+    if data is None and mesh is not None and "fscore" in mesh:
+        data = mesh
+    return data
+
+
+def build_html(page: Page) -> str:
+    """The whole page for ``page.run_dir``; missing artifacts end up in ``page.missing``."""
+    run = read_json(page.run_dir / "run.json") or {}
+    scene = page.json(SCENE_JSON, "scene summary")
+    check = page.json(CHECK_JSON, "convention check")
+    metrics = page.json(TRAIN_METRICS, "training metrics")
+    mesh = page.json(MESH_JSON, "mesh figures")
+    evaluation = mesh_evaluation(page, mesh)
+    title = page.config.title or default_title(scene, run, page.run_dir)
+    body = [
+        key_figures(metrics, check, {**(mesh or {}), **(evaluation or {})}),
+        scene_section(scene, check), training_section(page, metrics), views_section(page), bench_section(page),
+        mesh_section(page, mesh, evaluation), cameras_section(page),
+        timings_section(stage_markers(page.run_dir, [str(s) for s in run.get("chain", [])])),
+    ]  # fmt: skip
+    body.append(missing_section(page.missing))
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">'
+            f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{header(title, page.run_dir, run, scene)}"
+            f"<main>{''.join(body)}</main></body></html>\n")  # fmt: skip
+
+
+def write_report(run_dir: "str | Path", config: "ReportConfig | None" = None, out: "str | Path | None" = None) -> Path:
+    """Write the report of ``run_dir`` atomically to ``out`` (default ``run_dir/report.html``)."""
+    from nerfpipe.stages import atomic_path
+
+    run_dir = Path(run_dir)
+    out = run_dir / REPORT_FILE if out is None else Path(out)
+    page = Page(run_dir, config or ReportConfig(), out_dir=out.parent)
+    text = build_html(page)
+    with atomic_path(out) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return out
+
+
+CSS = """
+:root { --ink:#1d2330; --muted:#5b6475; --line:#dde2ea; --bg:#f5f7fa; --card:#fff; --accent:#2f6fde; --good:#1b8a4b; --bad:#c62828; }
+* { box-sizing:border-box; }
+body { margin:0; background:var(--bg); color:var(--ink); font:15px/1.5 system-ui,-apple-system,"Segoe UI",Roboto,"DejaVu Sans",sans-serif; }
+main { max-width:1120px; margin:0 auto; padding:0 20px 40px; }
+header { background:#1d2330; color:#fff; margin:0 0 18px; padding:22px 0 12px; }
+header .inner { max-width:1120px; margin:0 auto; padding:0 20px; }
+header h1 { margin:0 0 6px; font-size:26px; font-weight:650; }
+header .meta { margin:0 0 10px; color:#c5cbd6; font-size:13px; }
+header code { color:#fff; background:rgba(255,255,255,0.12); }
+nav a { color:#9fc1ff; text-decoration:none; margin-right:16px; font-size:13px; }
+h2 { font-size:19px; margin:0 0 12px; padding-bottom:6px; border-bottom:2px solid var(--line); }
+h3 { font-size:15px; margin:4px 0 8px; color:var(--muted); font-weight:600; }
+section { background:var(--card); border:1px solid var(--line); border-radius:10px; padding:16px 20px; margin:0 0 18px; }
+code { font:12px ui-monospace,"DejaVu Sans Mono",monospace; background:#eef1f6; padding:1px 4px; border-radius:4px; color:var(--ink); word-break:break-all; }
+.cards { display:flex; flex-wrap:wrap; gap:12px; margin:0 0 18px; }
+.card { flex:1 1 150px; max-width:240px; background:var(--card); border:1px solid var(--line); border-left:4px solid var(--accent); border-radius:8px; padding:10px 14px; }
+.card.good { border-left-color:var(--good); } .card.bad { border-left-color:var(--bad); }
+.card .v { font-size:24px; font-weight:650; } .card .v small { font-size:13px; color:var(--muted); font-weight:400; }
+.card .k { color:var(--muted); font-size:13px; }
+.cols { display:grid; grid-template-columns:1fr 1fr; gap:24px; align-items:start; }
+@media (max-width:800px) { .cols { grid-template-columns:1fr; } }
+table { border-collapse:collapse; font-size:13.5px; }
+table.kv { width:100%; margin-bottom:10px; }
+table.kv th { text-align:left; font-weight:500; color:var(--muted); padding:3px 14px 3px 0; width:45%; vertical-align:top; }
+table.kv td { padding:3px 0; font-variant-numeric:tabular-nums; word-break:break-word; }
+table.kv tr + tr { border-top:1px solid #eef1f5; }
+table.grid { width:100%; margin:6px 0 12px; }
+table.grid th { text-align:left; background:#eef1f6; padding:6px 10px; font-weight:600; }
+table.grid td { padding:5px 10px; border-top:1px solid var(--line); font-variant-numeric:tabular-nums; }
+table.grid tbody tr:nth-child(even) { background:#fafbfd; }
+table.timings td:nth-child(4) { width:40%; }
+.bar { height:10px; background:var(--accent); border-radius:5px; min-width:2px; }
+figure { margin:10px 0; }
+figure img { display:block; max-width:100%; height:auto; border:1px solid var(--line); border-radius:6px; background:#fff; }
+figure.gif img { width:320px; image-rendering:auto; background:#000; }
+figure.square img { max-width:640px; }
+figcaption { font-size:12.5px; color:var(--muted); margin-top:5px; }
+.row { display:flex; flex-wrap:wrap; gap:24px; }
+.absent { display:inline-block; margin:6px 0; padding:8px 12px; border:1px dashed #b8c0cc; border-radius:6px; color:var(--muted); background:#fafbfc; font-size:13px; }
+.status { margin:0 0 8px; font-weight:600; } .status.good { color:var(--good); } .status.bad { color:var(--bad); }
+.note { font-size:13px; color:var(--muted); }
+pre { background:#f3f5f8; padding:10px; border-radius:6px; overflow-x:auto; font-size:12px; }
+"""

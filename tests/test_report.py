@@ -1,0 +1,217 @@
+"""The ``report`` stage: report.html from any subset of a run's artifacts, embedded images that
+decode to the very files, relative links for large ones, and the page loaded in headless Chromium
+(every image decoded, screenshot not blank)."""
+
+import base64
+import json
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nerfpipe.report import REPORT_FILE, ReportConfig, fmt, write_report
+from nerfpipe.stages import DEFAULT_CHAIN, Pipeline, stages
+
+IMAGES = {
+    "train/psnr.png": "PSNR curves", "train/progress.png": "validation view during training",
+    "render/orbit.gif": "orbit (colour)", "render/depth_orbit.gif": "orbit (depth)",
+    "bench/psnr_vs_seconds.png": "val PSNR against training seconds", "mesh/mesh_views.png": "mesh from four views",
+    "train/cameras.png": "training cameras, rays and samples",
+}  # fmt: skip
+METRICS = {"val_psnr": 23.4567, "val_ssim": 0.8123, "train_seconds": 61.5, "iterations": 812, "model": "fast",
+           "model_params": 1234567, "model_mb": 4.71, "samples_per_ray": 37.5, "video": {"frames": 8}}  # fmt: skip
+MESH = {"method": "mc", "faces": 50210, "vertices": 25107, "faces_simplified": 50210, "fscore": 0.8765, "chamfer_l1": 0.0123}
+
+
+# ---------------------------------------------------------------- a run folder with real small artifacts
+
+
+def _pattern(w: int, h: int, seed: int) -> np.ndarray:
+    """A colourful uint8 image (gradients plus a disc), different per seed."""
+    y, x = np.mgrid[0:h, 0:w] / max(w, h)
+    disc = ((x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.1).astype(float)
+    img = np.stack([x, y, 0.5 + 0.5 * np.sin(6 * x + seed)], -1) * 0.7 + 0.3 * disc[..., None]
+    return (np.clip(img, 0, 1) * 255).astype(np.uint8)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data))
+
+
+def _write_images(run: Path, big_cameras: bool) -> None:
+    import imageio.v3 as iio
+
+    from nerfpipe.plots import plot_psnr
+    from nerfpipe.video import write_gif
+
+    (run / "train").mkdir(parents=True)
+    plot_psnr({"train": [[i, 0.1 * i, 10 + i ** 0.5] for i in range(1, 50)], "val": [[0, 0, 9.0], [49, 4.9, 16.0]]}, run / "train" / "psnr.png")
+    frames = [np.roll(_pattern(48, 40, 0), 6 * k, axis=1) for k in range(8)]
+    write_gif(frames, run / "render" / "orbit.gif", 10.0)
+    write_gif([f[..., ::-1] for f in frames], run / "render" / "depth_orbit.gif", 10.0)
+    for i, rel in enumerate(["train/progress.png", "bench/psnr_vs_seconds.png", "mesh/mesh_views.png"]):
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        iio.imwrite(run / rel, _pattern(120 + 10 * i, 60, i + 1))
+    rng = np.random.default_rng(0)  # noise does not compress: a PNG of several hundred kB
+    cams = rng.integers(0, 256, (400, 400, 3), dtype=np.uint8) if big_cameras else _pattern(80, 80, 9)
+    iio.imwrite(run / "train" / "cameras.png", cams)
+
+
+def _write_figures(run: Path) -> None:
+    _write_json(run / "run.json", {"source": "/data/lego_200x200.npz", "chain": ["load", "check", "train", "render", "report"]})
+    _write_json(run / "scene.json", {"input": "/data/lego_200x200.npz", "adapter": "cs180-npz", "num_cameras": 170,
+                                     "splits": {"train": 100, "val": 10}, "image_sizes": [[200, 200]], "near": 2.0, "far": 6.0,
+                                     "aabb": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]})  # fmt: skip
+    _write_json(run / "check.json", {"num_cameras": 170, "kornia_max_px": 4.9e-13, "roundtrip_max_px": 5.1e-13, "failures": []})
+    _write_json(run / "train" / "metrics.json", METRICS)
+    _write_json(run / "render" / "orbit.json", {"frames": 8, "size": [48, 40], "depth_mapping": "turbo colormap from 2.1 to 4.9"})
+    _write_json(run / "mesh" / "mesh.json", MESH)
+    rows = [{"preset": p, "budget_s": 20.0, "train_s": 20.3, "iterations": 100, "val_psnr": v, "val_ssim": 0.7,
+             "model_mb": 3.0, "samples_per_ray": 40.0} for p, v in (("vanilla", 18.25), ("fast-small", 24.75))]  # fmt: skip
+    _write_json(run / "bench" / "table.json", {"scene": "lego_200x200", "rows": rows})
+    for i, (name, seconds) in enumerate((("load", 0.2), ("check", 1.3), ("train", 75.0), ("render", 12.0))):
+        _write_json(run / "stages" / f"{name}.done.json", {"stage": name, "status": "ran", "seconds": seconds,
+                                                          "finished": f"2026-01-01T10:0{i}:00", "finished_at": 1000.0 + i})  # fmt: skip
+
+
+@pytest.fixture
+def full_run(tmp_path) -> Path:
+    run = tmp_path / "run"
+    _write_images(run, big_cameras=False)
+    _write_figures(run)
+    return run
+
+
+def _run_report(run: Path, **options) -> str:
+    Pipeline(["report"], {"report": options}).run(None, run, resume=False)
+    return (run / REPORT_FILE).read_text()
+
+
+def _img_sources(page: str) -> "dict[str, str]":
+    """alt -> src of every <img>."""
+    return {html_unescape(alt): src for src, alt in re.findall(r'<img src="([^"]*)" alt="([^"]*)">', page)}
+
+
+def html_unescape(s: str) -> str:
+    import html
+
+    return html.unescape(s)
+
+
+# ---------------------------------------------------------------- the page
+
+
+def test_report_is_last_in_the_default_chain():
+    assert DEFAULT_CHAIN[-1] == "report"
+    spec = stages()["report"]
+    assert spec.requires == () and spec.produces == (REPORT_FILE,)
+
+
+def test_full_run_embeds_every_image_and_figure(full_run):
+    page = _run_report(full_run)
+    sources = _img_sources(page)
+    assert set(sources) == set(IMAGES.values())
+    for rel, alt in IMAGES.items():
+        mime, data = re.fullmatch(r"data:(image/\w+);base64,(.*)", sources[alt]).groups()
+        assert base64.b64decode(data) == (full_run / rel).read_bytes()
+        assert mime == ("image/gif" if rel.endswith(".gif") else "image/png")
+    for value in [*(METRICS[k] for k in ("val_psnr", "val_ssim", "iterations", "model_params")), MESH["fscore"], MESH["faces"]]:
+        assert fmt(value) in page
+    assert "<b>24.75</b>" in page and "<b>18.25</b>" not in page  # best PSNR of the budget in bold
+    assert "not produced" not in page and "Every artifact the report looks for was found" in page
+    timings = page[page.index('id="timings"') :]
+    assert [timings.index(f"<td>{s}</td>") for s in ("load", "check", "train", "render")] == sorted(
+        timings.index(f"<td>{s}</td>") for s in ("load", "check", "train", "render"))
+    assert "<b>88.5</b>" in timings  # total seconds
+    assert "http://" not in page and "https://" not in page  # no external resources
+    assert json.loads((full_run / "stages" / "report.done.json").read_text())["status"] == "ran"
+    assert not list(full_run.rglob(".tmp-*"))
+
+
+def test_missing_and_broken_artifacts_are_listed(tmp_path):
+    run = tmp_path / "run"
+    _write_json(run / "scene.json", {"input": "/data/x.npz", "num_cameras": 3})
+    (run / "check.json").write_text("{not json")
+    page = _run_report(run)
+    missing = page[page.index('id="missing"') :]
+    for what in ("training metrics", "PSNR curves", "orbit (colour)", "orbit (depth)", "mesh from four views",
+                 "training cameras", "speed-against-error table"):  # fmt: skip
+        assert what in missing
+    assert "convention check (check.json: unreadable)" in missing
+    assert "scene summary" not in missing and "<img" not in page
+    assert "nerfpipe report: x" in page
+
+
+def test_large_image_is_linked_relative_to_the_report(tmp_path):
+    run = tmp_path / "run"
+    _write_images(run, big_cameras=True)
+    out = write_report(run, ReportConfig(max_embed_mb=0.25), out=tmp_path / "elsewhere" / "r.html")
+    sources = _img_sources(out.read_text())
+    src = sources["training cameras, rays and samples"]
+    assert src == "../run/train/cameras.png" and (out.parent / src).resolve() == (run / "train" / "cameras.png").resolve()
+    assert all(s.startswith("data:") for alt, s in sources.items() if alt != "training cameras, rays and samples")
+
+
+# ---------------------------------------------------------------- in a real browser
+
+CHECK_SCRIPT = """<script>
+window.addEventListener('load', () => {
+  const r = [...document.images].map(i => ({alt: i.alt, complete: i.complete, w: i.naturalWidth, h: i.naturalHeight}));
+  const pre = document.createElement('pre'); pre.id = 'imgcheck'; pre.textContent = JSON.stringify(r);
+  document.body.appendChild(pre);
+});
+</script>"""
+
+
+def _chromium() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        msg = "chromium is not installed (apt-get install -y chromium)"
+        pytest.fail(msg) if os.environ.get("CI") else pytest.skip(msg)
+    return exe
+
+
+def _chromium_args(exe: str, profile: Path) -> "list[str]":
+    return [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--hide-scrollbars", f"--user-data-dir={profile}",
+            "--virtual-time-budget=5000", "--window-size=1200,2000"]  # fmt: skip
+
+
+def _image_sizes(run: Path) -> "dict[str, tuple[int, int]]":
+    import imageio.v3 as iio
+
+    shapes = {alt: iio.imread(run / rel, index=0 if rel.endswith(".gif") else None).shape for rel, alt in IMAGES.items()}
+    return {alt: (shape[1], shape[0]) for alt, shape in shapes.items()}
+
+
+def test_report_renders_in_headless_chromium(tmp_path):
+    exe = _chromium()
+    run = tmp_path / "run"
+    _write_images(run, big_cameras=True)
+    _write_figures(run)
+    page = _run_report(run, max_embed_mb=0.25)  # cameras.png is linked, the rest embedded
+    probe = run / "probe.html"  # a copy with a script that records how each image decoded
+    probe.write_text(page.replace("</body>", CHECK_SCRIPT + "</body>"))
+    shot = tmp_path / "shot.png"
+    dom = subprocess.Popen([*_chromium_args(exe, tmp_path / "p1"), "--dump-dom", probe.as_uri()], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    subprocess.run([*_chromium_args(exe, tmp_path / "p2"), f"--screenshot={shot}", (run / REPORT_FILE).as_uri()], capture_output=True, timeout=60, check=True)
+    out, _ = dom.communicate(timeout=60)
+    found = json.loads(html_unescape(re.search(r'<pre id="imgcheck">(.*?)</pre>', out, re.S).group(1)))
+    assert {r["alt"] for r in found} == set(IMAGES.values())
+    for r in found:
+        assert r["complete"] and (r["w"], r["h"]) == _image_sizes(run)[r["alt"]], r
+    _assert_not_blank(shot)
+
+
+def _assert_not_blank(shot: Path) -> None:
+    import imageio.v3 as iio
+
+    img = iio.imread(shot)[..., :3].astype(float)
+    assert img.shape[:2] == (2000, 1200)
+    assert img.std() > 20.0  # a blank page is one colour
+    assert len(np.unique(img.reshape(-1, 3)[::7], axis=0)) > 200  # text, plots and photos, not flat boxes
