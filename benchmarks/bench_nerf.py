@@ -99,8 +99,8 @@ def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -
     }
 
 
-def bench_preset(scene, name: str, cfg: BenchConfig, out: Path) -> "list[dict]":
-    """Train one preset until the last budget, scoring it as each budget passes."""
+def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> "list[dict]":
+    """Train one preset until the last budget, scoring it as each budget passes (``on_row(row)`` after each)."""
     trainer = _trainer(scene, name, cfg, out)
     trainer.out.mkdir(parents=True, exist_ok=True)
     trainer.model.train()
@@ -114,6 +114,8 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path) -> "list[dict]":
         r = rows[-1]
         print(f"{name:12s} {budget:6g} s: {r['val_psnr']:.2f} dB after {r['iterations']} it "
               f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f})", flush=True)
+        if on_row is not None:
+            on_row(r)
     return rows
 
 
@@ -179,9 +181,12 @@ def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
     scene = load(path)
     out.mkdir(parents=True, exist_ok=True)
     rows: "list[dict]" = []
+    def on_row(row: dict) -> None:  # partial tables survive an interrupted run
+        rows.append(row)
+        write_table(rows, out, Path(path).name, cfg)
+
     for name in cfg.presets:
-        rows += bench_preset(scene, name, cfg, out)
-        write_table(rows, out, Path(path).name, cfg)  # partial tables survive an interrupted run
+        bench_preset(scene, name, cfg, out, on_row)
     return rows
 
 

@@ -57,7 +57,7 @@ def validate(trainer, num_views: int) -> "tuple[float, float]":
             save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(view.rgb))
     psnr = sum(s[0] for s in scores) / len(scores)
     ssim = sum(s[1] for s in scores) / len(scores)
-    trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim])
+    trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim, len(idx)])
     return psnr, ssim
 
 

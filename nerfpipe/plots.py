@@ -30,8 +30,9 @@ def plot_psnr(history: dict, path: Path) -> None:
     for ax, col, label in ((axes[0], 0, "iteration"), (axes[1], 1, "training seconds")):
         if train:
             ax.plot([r[col] for r in train], [r[2] for r in train], lw=0.8, alpha=0.7, label="train (batch)")
-        if val:
-            ax.plot([r[col] for r in val], [r[2] for r in val], "o-", label="val")
+        for n in sorted({r[4] if len(r) > 4 else 0 for r in val}):  # one series per number of views
+            rows = [r for r in val if (r[4] if len(r) > 4 else 0) == n]
+            ax.plot([r[col] for r in rows], [r[2] for r in rows], "o-", label=f"val ({n} views)" if n else "val")
         ax.set_xlabel(label)
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)

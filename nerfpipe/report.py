@@ -53,7 +53,8 @@ LABELS = {
     "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),
     "recall": ("recall", ""), "accuracy": ("accuracy", ""), "completeness": ("completeness", ""),
     "faces": ("faces", ""), "faces_simplified": ("faces (simplified)", ""), "vertices": ("vertices", ""),
-    "hausdorff_max": ("Hausdorff max (simplification)", ""), "num_cameras": ("cameras", ""),
+    "hausdorff_max": ("Hausdorff max (simplification)", ""), "hausdorff_mean": ("Hausdorff mean (simplification)", ""),
+    "level": ("density iso-level", ""), "voxel_size": ("voxel size", ""), "num_cameras": ("cameras", ""),
     "kornia_max_px": ("kornia projection max error", "px"),
     "kornia_unproject_max_px": ("kornia unprojection max error", "px"), "num_probes": ("probe pixels", ""),
     "rotation_orthonormality_err": ("rotation orthonormality error", ""), "roundtrip_max_px": ("round-trip max error", "px"),
@@ -147,6 +148,13 @@ def kv_table(data: dict, keys: "list[str] | None" = None) -> str:
     return f'<table class="kv">{rows}</table>' if rows else ""
 
 
+def kv_columns(data: dict, keys: "list[str] | None" = None) -> str:
+    """:func:`kv_table` split into two side-by-side halves (long lists of figures)."""
+    keys = [k for k in (keys if keys is not None else list(data)) if k in data]
+    half = (len(keys) + 1) // 2
+    return f'<div class="cols">{kv_table(data, keys[:half])}{kv_table(data, keys[half:])}</div>' if keys else ""
+
+
 def table(header: "list[str]", rows: "list[list[str]]", cls: str = "grid") -> str:
     """A table of already escaped cells."""
     head = "".join(f"<th>{h}</th>" for h in header)
@@ -221,7 +229,7 @@ def _scene_rows(scene: dict) -> dict:
     if isinstance(scene.get("image_sizes"), list):
         out["image_sizes"] = ", ".join("×".join(str(n) for n in s) for s in scene["image_sizes"] if isinstance(s, list))
     if isinstance(scene.get("aabb"), list):
-        out["aabb"] = " to ".join("(" + ", ".join(f"{x:.3g}" for x in c) + ")" for c in scene["aabb"] if isinstance(c, list))
+        out["aabb"] = " to ".join("(" + ", ".join(fmt(x) for x in c) + ")" for c in scene["aabb"] if isinstance(c, list))
     return out
 
 
@@ -247,7 +255,7 @@ def training_section(page: Page, metrics: "dict | None") -> str:
         body = not_produced("training metrics (train/metrics.json)")
     else:
         flat = {k: v for k, v in metrics.items() if not isinstance(v, dict) and k != "depth_colormap"}
-        body = kv_table(flat)
+        body = kv_columns(flat)
     curves = figure(page, PSNR_PNG, "PSNR curves", "train (per batch) and validation PSNR against iterations and seconds", "wide")
     progress = figure(page, PROGRESS_PNG, "validation view during training", cls="wide")
     return section("training", "Training", f"<h3>Metrics</h3>{body}{curves}{progress}")
@@ -295,7 +303,8 @@ def bench_section(page: Page) -> str:
     root = Path(page.config.bench_dir) if page.config.bench_dir else page.run_dir / "bench"
     doc = read_json(p) if (p := page.find(BENCH_JSON, root)) is not None else None
     if doc is not None and isinstance(doc.get("rows"), list):
-        body = f"<p>scene: {esc(doc.get('scene', '?'))}; best val PSNR per budget in bold</p>" + bench_table(doc["rows"])
+        rows = [r for r in doc["rows"] if isinstance(r, dict)]
+        body = f"<p>scene: {esc(doc.get('scene', '?'))}; best val PSNR per budget in bold</p>" + bench_table(rows)
     elif (md := page.find(BENCH_MD, root)) is not None:
         body = f"<pre>{esc(md.read_text())}</pre>"
     else:
@@ -332,11 +341,11 @@ def stage_markers(run_dir: Path, chain: "list[str]") -> "list[dict]":
 def timings_section(markers: "list[dict]") -> str:
     if not markers:
         return section("timings", "Stage timings", not_produced("stage markers (stages/*.done.json)"))
-    seconds = [float(m.get("seconds") or 0.0) for m in markers]
+    seconds = [float(s) if isinstance(s := m.get("seconds"), (int, float)) else 0.0 for m in markers]
     longest = max(max(seconds), 1e-9)
     rows = [
         [esc(m.get("stage", "?")), esc(m.get("status", "?")), esc(f"{s:.1f}"),
-         f'<div class="bar" style="width:{100 * s / longest:.1f}%"></div>', esc(m.get("finished", ""))]
+         f'<div class="bar" style="width:{100 * s / longest:.1f}%"></div>', esc(str(m.get("finished", "")).replace("T", " "))]
         for m, s in zip(markers, seconds)
     ]  # fmt: skip
     rows.append(["<b>total</b>", "", f"<b>{sum(seconds):.1f}</b>", "", ""])
@@ -354,9 +363,9 @@ NAV = [("scene", "Scene"), ("training", "Training"), ("views", "Novel views"), (
        ("mesh", "Mesh"), ("cameras", "Cameras"), ("timings", "Timings"), ("missing", "Not produced")]  # fmt: skip
 
 
-def header(title: str, run_dir: Path, run: dict, scene: "dict | None") -> str:
-    source = run.get("source") or (scene or {}).get("input") or "in-memory input"
-    chain = " → ".join(map(str, run.get("chain", []))) or "unknown"
+def header(title: str, run_dir: Path, source: object, chain: "list[str]") -> str:
+    source = source or "in-memory input"
+    chain = " → ".join(chain) or "unknown"
     when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     nav = "".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in NAV)
     return (f"<header><div class='inner'><h1>{esc(title)}</h1><p class='meta'>input <code>{esc(source)}</code><br>"
@@ -364,9 +373,8 @@ def header(title: str, run_dir: Path, run: dict, scene: "dict | None") -> str:
             f"<nav>{nav}</nav></div></header>")  # fmt: skip
 
 
-def default_title(scene: "dict | None", run: dict, run_dir: Path) -> str:
-    source = (scene or {}).get("input") or run.get("source")
-    return f"nerfpipe report: {Path(source).stem if source else run_dir.resolve().name}"
+def default_title(source: object, run_dir: Path) -> str:
+    return f"nerfpipe report: {Path(str(source)).stem if source else run_dir.resolve().name}"
 
 
 def mesh_evaluation(page: Page, mesh: "dict | None") -> "dict | None":
@@ -378,6 +386,15 @@ def mesh_evaluation(page: Page, mesh: "dict | None") -> "dict | None":
     return data
 
 
+def guarded(page: Page, anchor: str, what: str, build) -> str:
+    """``build()``, or a note when an artifact holds data of an unexpected shape (the page still gets written)."""
+    try:
+        return build()
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        page.missing.append(f"{what} (unexpected content: {type(exc).__name__}: {exc})")
+        return section(anchor, what.capitalize(), not_produced(f"{what} (unexpected content, see the end)"))
+
+
 def build_html(page: Page) -> str:
     """The whole page for ``page.run_dir``; missing artifacts end up in ``page.missing``."""
     run = read_json(page.run_dir / "run.json") or {}
@@ -386,16 +403,22 @@ def build_html(page: Page) -> str:
     metrics = page.json(TRAIN_METRICS, "training metrics")
     mesh = page.json(MESH_JSON, "mesh figures")
     evaluation = mesh_evaluation(page, mesh)
-    title = page.config.title or default_title(scene, run, page.run_dir)
+    source = run.get("source") or (scene or {}).get("input")
+    title = page.config.title or default_title(source, page.run_dir)
+    chain = [str(s) for s in run.get("chain", [])] if isinstance(run.get("chain"), list) else []
     body = [
-        key_figures(metrics, check, {**(mesh or {}), **(evaluation or {})}),
-        scene_section(scene, check), training_section(page, metrics), views_section(page), bench_section(page),
-        mesh_section(page, mesh, evaluation), cameras_section(page),
-        timings_section(stage_markers(page.run_dir, [str(s) for s in run.get("chain", [])])),
-    ]  # fmt: skip
+        guarded(page, "figures", "key figures", lambda: key_figures(metrics, check, {**(mesh or {}), **(evaluation or {})})),
+        guarded(page, "scene", "scene", lambda: scene_section(scene, check)),
+        guarded(page, "training", "training", lambda: training_section(page, metrics)),
+        guarded(page, "views", "novel views", lambda: views_section(page)),
+        guarded(page, "bench", "speed against error", lambda: bench_section(page)),
+        guarded(page, "mesh", "mesh", lambda: mesh_section(page, mesh, evaluation)),
+        guarded(page, "cameras", "cameras", lambda: cameras_section(page)),
+        guarded(page, "timings", "stage timings", lambda: timings_section(stage_markers(page.run_dir, chain))),
+    ]
     body.append(missing_section(page.missing))
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{header(title, page.run_dir, run, scene)}"
+            f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{header(title, page.run_dir, source, chain)}"
             f"<main>{''.join(body)}</main></body></html>\n")  # fmt: skip
 
 
@@ -428,11 +451,11 @@ h3 { font-size:15px; margin:4px 0 8px; color:var(--muted); font-weight:600; }
 section { background:var(--card); border:1px solid var(--line); border-radius:10px; padding:16px 20px; margin:0 0 18px; }
 code { font:12px ui-monospace,"DejaVu Sans Mono",monospace; background:#eef1f6; padding:1px 4px; border-radius:4px; color:var(--ink); word-break:break-all; }
 .cards { display:flex; flex-wrap:wrap; gap:12px; margin:0 0 18px; }
-.card { flex:1 1 150px; max-width:240px; background:var(--card); border:1px solid var(--line); border-left:4px solid var(--accent); border-radius:8px; padding:10px 14px; }
+.card { flex:1 1 110px; max-width:260px; background:var(--card); border:1px solid var(--line); border-left:4px solid var(--accent); border-radius:8px; padding:10px 14px; }
 .card.good { border-left-color:var(--good); } .card.bad { border-left-color:var(--bad); }
-.card .v { font-size:24px; font-weight:650; } .card .v small { font-size:13px; color:var(--muted); font-weight:400; }
+.card .v { font-size:23px; font-weight:650; white-space:nowrap; } .card .v small { font-size:13px; color:var(--muted); font-weight:400; }
 .card .k { color:var(--muted); font-size:13px; }
-.cols { display:grid; grid-template-columns:1fr 1fr; gap:24px; align-items:start; }
+.cols { display:grid; grid-template-columns:1fr 1fr; gap:8px 32px; align-items:start; }
 @media (max-width:800px) { .cols { grid-template-columns:1fr; } }
 table { border-collapse:collapse; font-size:13.5px; }
 table.kv { width:100%; margin-bottom:10px; }

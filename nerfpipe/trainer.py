@@ -31,7 +31,8 @@ class TrainerConfig:
     iters: int = 1000
     """Training iterations (optimiser steps)."""
     time_budget: "float | None" = None
-    """Stop after this many seconds of training (validation excluded), whichever of the two comes first."""
+    """Stop after this many seconds of training (validation excluded), whichever of the two comes first;
+    the iteration running when the budget runs out is finished."""
     rays_per_step: int = 10000
     """Rays per iteration, drawn uniformly from all pixels of all training images."""
     lr: float = 5e-4
@@ -100,7 +101,7 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device)
         self.step, self.train_seconds = 0, 0.0
-        self.history = {"train": [], "val": []}  # rows: [step, seconds, psnr(, ssim)]
+        self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
         self.torch_rng = torch.get_rng_state()  # jitter stream of this run, independent of other trainers
 

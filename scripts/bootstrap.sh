@@ -24,7 +24,7 @@ if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
   apt_install libusb-1.0-0 libgomp1
 fi
 if [ "$WITH_TEST_DEPS" = 1 ] && ! command -v chromium >/dev/null 2>&1; then
-  apt_install chromium
+  apt_install chromium fonts-liberation fonts-dejavu-core
 fi
 
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"

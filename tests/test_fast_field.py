@@ -92,10 +92,28 @@ def test_tighten_resamples_a_linear_field_exactly():
     box = model.field.aabb
     assert (box[1] - box[0] < 2.0).all() and (box[0] <= -0.25).all() and (box[1] >= 0.25).all()
     torch.testing.assert_close(model.field.density(probe), before, rtol=1e-4, atol=1e-4)
-    state = model.state_dict()  # a fresh model accepts the resized checkpoint
+    # a fresh model accepts the resized checkpoint
     fresh = FastConfig(**TINY).setup(info())
-    fresh.load_state_dict(state)
+    fresh.load_state_dict(model.state_dict())
     torch.testing.assert_close(fresh.field.density(probe), before, rtol=1e-4, atol=1e-4)
+
+
+def test_coarse_to_fine_levels_survive_a_checkpoint():
+    cfg = FastConfig(levels=(4, 8, 16), feature_channels=2, hidden=8, coarse_to_fine_every=10, tighten_step=0)
+    model = cfg.setup(info())
+    probe = torch.rand(20, 3) - 0.5
+    with torch.no_grad():
+        model.field.density_grid.tables[2].normal_()
+    coarse = model.field.density(probe)
+    model._before_step(25)  # third level switched on
+    assert model.field.active_levels == 3
+    fine = model.field.density(probe)
+    assert not torch.allclose(coarse, fine)
+    fresh = cfg.setup(info())
+    assert fresh.field.active_levels == 2
+    fresh.load_state_dict(model.state_dict())
+    assert fresh.field.active_levels == 3
+    torch.testing.assert_close(fresh.field.density(probe), fine)
 
 
 def test_render_outputs_and_stats():
@@ -128,7 +146,7 @@ def tiny_scene(scene_path, tmp_path_factory):
 def test_tiny_training_run_learns(tiny_scene, tmp_path):
     model = FastConfig(levels=(12, 24), feature_channels=2, hidden=16, step_ratio=1.0, tighten_step=20,
                        occupancy=OccupancyGridConfig(resolution=24, warmup_steps=4, update_every=4))
-    cfg = TrainerConfig(iters=40, rays_per_step=512, eval_every=40, video_frames=0, checkpoint_every=0, seed=0)
+    cfg = TrainerConfig(iters=30, rays_per_step=512, eval_every=30, video_frames=0, checkpoint_every=0, seed=0)
     trainer = Trainer(cfg, tiny_scene, "fast", model, tmp_path)
     metrics = trainer.train()
     val = trainer.history["val"]

@@ -110,3 +110,21 @@ def test_close_holes_makes_a_punctured_sphere_watertight():
     assert not holed.to_trimesh().is_watertight
     closed = close_holes(holed, max_hole_edges=30)
     assert closed.to_trimesh().is_watertight and closed.num_faces == holed.num_faces + 3
+
+
+def test_depth_map_fast_pinhole_path_matches_nerfpipe_rays():
+    """Open3D's pinhole ray generator (fast path) against nerfpipe's camera_rays (reference)."""
+    import dataclasses
+
+    import open3d as o3d
+
+    from nerfpipe.mesh.clean import _depth_map
+
+    m, cams = sphere(1.0, subdivisions=4), ring_cameras(n=2, size=64)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(m.to_open3d_tensor())
+    fast = _depth_map(scene, cams, 1)
+    ref = _depth_map(scene, dataclasses.replace(cams, distortion=torch.ones_like(cams.distortion)), 1)  # OPENCV, zero params
+    assert torch.equal(torch.isfinite(fast), torch.isfinite(ref)) and torch.isfinite(fast).float().mean() > 0.2
+    hit = torch.isfinite(fast)
+    torch.testing.assert_close(fast[hit], ref[hit], atol=1e-4, rtol=0)

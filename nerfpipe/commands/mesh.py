@@ -35,7 +35,7 @@ def mesh(
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).
         level: density iso-level for mc (default: chosen by --level-from).
-        level-from: automatic level: opacity (ln 2 / voxel size, one voxel half opaque) or depth
+        level_from: automatic level: opacity (ln 2 / voxel size, one voxel half opaque) or depth
             (the median density where rays of rendered training views end).
         min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters).
         remove_unseen: drop faces no training camera sees.

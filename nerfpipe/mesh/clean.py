@@ -115,21 +115,33 @@ def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tol
 
 
 def _project(cam: Cameras, points: torch.Tensor):
-    """Project world points with one camera (broadcast by hand: Cameras.project wants equal batch shapes)."""
+    """Project world points with one camera: ``(pixel uv, camera-z depth)``."""
     cfw = cam.cam_from_world
     p = points @ cfw[:3, :3].T + cfw[:3, 3]
     z = p[:, 2]
     xy = p[:, :2] / z.clamp(min=1e-12)[:, None]
-    n = len(points)
+    if int(cam.distortion) == 0:
+        return torch.stack([cam.fx * xy[:, 0] + cam.cx, cam.fy * xy[:, 1] + cam.cy], dim=-1), z
+    n = len(points)  # distorted: Cameras.normalized_to_pixel wants one camera per point
     expand = Cameras(cam.world_from_cam.expand(n, 4, 4), cam.fx.expand(n), cam.fy.expand(n), cam.cx.expand(n), cam.cy.expand(n), cam.width.expand(n), cam.height.expand(n), cam.distortion.expand(n), cam.dist_params.expand(n, 4))
     return expand.normalized_to_pixel(xy), z
 
 
 def _depth_map(scene, cams: Cameras, index: int) -> torch.Tensor:
-    """Camera-z depth of the first hit per pixel (inf where the ray misses)."""
+    """Camera-z depth of the first hit per pixel (inf where the ray misses).
+
+    Pinhole cameras use Open3D's own ray generator (fast); distorted ones nerfpipe's rays.
+    """
     import open3d as o3d
 
-    rays = camera_rays(cams, index)
-    o3d_rays = torch.cat([rays.origins, rays.directions], dim=-1).float().numpy()
-    t = torch.from_numpy(scene.cast_rays(o3d.core.Tensor(o3d_rays))["t_hit"].numpy()).double()
-    return t * rays.z_scale
+    cam = cams[index]
+    if int(cam.distortion) == 0:
+        k, cfw = (o3d.core.Tensor(m.double().numpy()) for m in (cam.K, cam.cam_from_world))
+        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(k, cfw, int(cam.width), int(cam.height))
+        z_per_t = torch.from_numpy(rays.numpy()[..., 3:]).double() @ cam.forward.double()
+    else:
+        bundle = camera_rays(cams, index)
+        rays = o3d.core.Tensor(torch.cat([bundle.origins, bundle.directions], dim=-1).float().numpy())
+        z_per_t = bundle.z_scale.double()
+    t = torch.from_numpy(scene.cast_rays(rays)["t_hit"].numpy()).double()
+    return t * z_per_t

@@ -126,7 +126,9 @@ class FastModel(Model):
         aabb = info.aabb.detach().float()
         self.field = FastField(aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"])
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
-        self.field.active_levels = min(2, len(self.capacity['levels'])) if cfg.coarse_to_fine_every > 0 else len(self.capacity['levels'])
+        n_levels = len(self.capacity["levels"])
+        self.field.active_levels = min(2, n_levels) if cfg.coarse_to_fine_every > 0 else n_levels
+        self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
         self._samples_per_ray = 0.0
@@ -212,6 +214,7 @@ class FastModel(Model):
         self._step = step
         every, n = self.cfg.coarse_to_fine_every, len(self.field.density_grid.resolutions)
         self.field.active_levels = min(n, 2 + step // every) if every > 0 else n
+        self.active_levels.fill_(self.field.active_levels)
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
             self.grid.update(self.field.density, self.step_size)
@@ -287,6 +290,7 @@ class FastModel(Model):
                         table.data = torch.empty_like(src)
                 grid.resolutions = resolutions
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self.field.active_levels = int(self.active_levels)
 
 
 SPEC = ModelSpec(
