@@ -61,7 +61,7 @@ def undistort_opencv(
     tol = _tolerance(xy_d)
     for _ in range(iterations):
         fx, fy, j00, j01, j11 = _opencv_residual_and_jacobian(xy, xy_d, params)
-        if fx.numel() == 0 or float(torch.maximum(fx.abs().max(), fy.abs().max())) <= tol:
+        if fx.numel() == 0 or float(torch.maximum(fx.detach().abs().max(), fy.detach().abs().max())) <= tol:
             break  # converged everywhere (usually after 2-4 steps)
         det = j00 * j11 - j01 * j01
         det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
@@ -93,7 +93,7 @@ def undistort_fisheye(
     for _ in range(iterations):
         t2 = theta * theta
         f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
-        if f.numel() == 0 or float(f.abs().max()) <= tol:
+        if f.numel() == 0 or float(f.detach().abs().max()) <= tol:
             break
         df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + 9 * t2 * k4)))
         theta = theta - f / df.clamp_min(1e-6)
