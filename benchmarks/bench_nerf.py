@@ -121,7 +121,7 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> 
 
 def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig) -> None:
     """table.json, table.md and psnr_vs_seconds.png in ``out`` (written atomically)."""
-    from nerfpipe.runs import atomic_write_bytes, write_json
+    from nerfpipe.atomic import atomic_write, write_json
 
     write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
     lines = [
@@ -136,7 +136,7 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
             f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | "
             f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} |"
         )
-    atomic_write_bytes(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
+    atomic_write(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
     plot(rows, out / "psnr_vs_seconds.png", scene_name)
 
 
@@ -161,9 +161,9 @@ def plot(rows: "list[dict]", path: Path, title: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    from nerfpipe.runs import atomic_write_bytes
+    from nerfpipe.atomic import atomic_write
 
-    atomic_write_bytes(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+    atomic_write(path, lambda p: fig.savefig(p, dpi=110, format="png"))
     plt.close(fig)
 
 

@@ -64,9 +64,9 @@ def validate(trainer, num_views: int) -> "tuple[float, float]":
 def save_snapshot(path: Path, image) -> None:
     import imageio.v3 as iio
 
-    from nerfpipe.runs import atomic_write_bytes
+    from nerfpipe.atomic import atomic_write
 
-    atomic_write_bytes(path, lambda p: iio.imwrite(p, image, extension=".png"))
+    atomic_write(path, lambda p: iio.imwrite(p, image, extension=".png"))
 
 
 def finish(trainer) -> dict:

@@ -5,7 +5,7 @@ from pathlib import Path
 import torch
 
 from nerfpipe.errors import require
-from nerfpipe.runs import atomic_write_bytes
+from nerfpipe.atomic import atomic_write
 
 
 def _pyplot():
@@ -18,7 +18,7 @@ def _pyplot():
 
 def _save(fig, path: Path) -> None:
     plt = _pyplot()
-    atomic_write_bytes(path, lambda p: fig.savefig(p, dpi=100, format="png", bbox_inches="tight"))
+    atomic_write(path, lambda p: fig.savefig(p, dpi=100, format="png", bbox_inches="tight"))
     plt.close(fig)
 
 

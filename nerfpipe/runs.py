@@ -6,12 +6,12 @@
 
 import dataclasses
 import json
-import os
 import typing
 from pathlib import Path
 
 import torch
 
+from nerfpipe.atomic import atomic_write, write_json  # noqa: F401 (write_json is part of this module's API)
 from nerfpipe.errors import NerfpipeError
 
 CONFIG = "config.json"
@@ -37,25 +37,8 @@ def from_dict(cls: type, data: dict):
     return cls(**kwargs)
 
 
-def atomic_write_bytes(path: Path, write) -> None:
-    """Call ``write(tmp_path)`` then rename onto ``path`` (same folder, so the rename is atomic)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def write_json(path: Path, data: dict) -> None:
-    atomic_write_bytes(path, lambda p: Path(p).write_text(json.dumps(data, indent=2) + "\n"))
-
-
 def save_checkpoint(path: Path, state: dict) -> None:
-    atomic_write_bytes(path, lambda p: torch.save(state, p))
+    atomic_write(path, lambda p: torch.save(state, p))
 
 
 def read_config(run_dir: Path) -> dict:

@@ -24,27 +24,23 @@ Glossary:
     marker    ``stages/<name>.done.json``
 """
 
-import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
-import os
-import shutil
 import time
 import tomllib
-import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nerfpipe.atomic import TMP_PREFIX, _json_default, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.registry import STAGE_GROUP, discover
 
 MARKER_DIR = "stages"
 RUN_RECORD = "run.json"
-TMP_PREFIX = ".tmp-"
 NOT_NEEDED = "not needed"
 SKIPPED = "skipped"
 DEFAULT_CHAIN = ("sfm", "load", "check", "export", "report")
@@ -129,78 +125,6 @@ class StageContext:
         if self.time_budget is None:
             return None
         return max(0.0, self.time_budget - (time.monotonic() - self.started))
-
-
-# ---------------------------------------------------------------- atomic writes
-
-
-@contextlib.contextmanager
-def atomic_path(target: "str | Path") -> Iterator[Path]:
-    """Yield a temporary path next to ``target``; on success move it into place with ``os.replace``.
-
-    Works for a file or a folder. On any exception (KeyboardInterrupt included) the temporary
-    is removed and ``target`` is left as it was.
-
-    Example:
-        >>> import tempfile
-        >>> d = Path(tempfile.mkdtemp())
-        >>> with atomic_path(d / "a.txt") as tmp:
-        ...     _ = tmp.write_text("hi")
-        >>> (d / "a.txt").read_text()
-        'hi'
-    """
-    target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f"{TMP_PREFIX}{uuid.uuid4().hex[:8]}-{target.name}")
-    try:
-        yield tmp
-        _replace(tmp, target)
-    finally:
-        _remove(tmp)
-
-
-def _replace(tmp: Path, target: Path) -> None:
-    if tmp.is_dir() and target.exists():  # os.replace cannot overwrite a non-empty folder
-        old = target.with_name(f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}-{target.name}")
-        os.replace(target, old)
-        os.replace(tmp, target)
-        _remove(old)
-    else:
-        os.replace(tmp, target)
-
-
-def _remove(p: Path) -> None:
-    if p.is_dir() and not p.is_symlink():
-        shutil.rmtree(p, ignore_errors=True)
-    elif p.exists() or p.is_symlink():
-        p.unlink()
-
-
-def sweep_temporaries(run_dir: Path) -> None:
-    """Remove the temporaries of writes that were killed before they finished (symlinks not followed).
-
-    Both this module's ``.tmp-*`` and :func:`nerfpipe.runs.atomic_write_bytes`' ``.<name>.tmp<pid>``.
-    """
-    found = [*Path(run_dir).rglob(f"{TMP_PREFIX}*"), *Path(run_dir).rglob(".*.tmp[0-9]*")]
-    for p in sorted(set(found), key=lambda p: -len(p.parts)):
-        _remove(p)
-
-
-def write_json(target: "str | Path", obj: object) -> Path:
-    """Write JSON atomically; returns the path."""
-    with atomic_path(target) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    return Path(target)
-
-
-def _json_default(o: object) -> object:
-    if dataclasses.is_dataclass(o):
-        return dataclasses.asdict(o)
-    if isinstance(o, Path):
-        return str(o)
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 # ---------------------------------------------------------------- discovery and configs

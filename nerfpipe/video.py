@@ -1,24 +1,11 @@
 """Writing frame sequences as GIF or MP4, atomically (temporary file in the same folder, then rename)."""
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.atomic import atomic_write
 from nerfpipe.errors import require
-
-
-def _atomic_write(path: Path, write) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
 
 
 def _frames(frames) -> "list[np.ndarray]":
@@ -33,7 +20,7 @@ def write_gif(frames, path: "str | Path", fps: float = 15.0) -> Path:
     import imageio.v2 as imageio
 
     frames = _frames(frames)
-    return _atomic_write(Path(path), lambda p: imageio.mimsave(p, frames, format="GIF", duration=1000.0 / fps, loop=0))
+    return atomic_write(Path(path), lambda p: imageio.mimsave(p, frames, format="GIF", duration=1000.0 / fps, loop=0))
 
 
 def write_video(frames, path: "str | Path", fps: float = 15.0) -> Path:
@@ -51,4 +38,4 @@ def write_video(frames, path: "str | Path", fps: float = 15.0) -> Path:
             for f in frames:
                 writer.append_data(f)
 
-    return _atomic_write(Path(path), write)
+    return atomic_write(Path(path), write)

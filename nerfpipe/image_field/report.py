@@ -3,36 +3,12 @@
 Every file is written atomically (temp file in the same folder, then ``os.replace``).
 """
 
-import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.atomic import atomic_write, write_json, write_text  # noqa: F401 (used by the fit2d modules)
 from nerfpipe.image_field.train import FitResult
-
-
-def atomic_write(path: Path, write) -> None:
-    """Call ``write(tmp_path)`` and move the result to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_json(path: Path, data: dict) -> None:
-    atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=2, default=str) + "\n"))
-
-
-def write_text(path: Path, text: str) -> None:
-    atomic_write(path, lambda p: p.write_text(text))
 
 
 def write_png(path: Path, img: np.ndarray) -> None:
