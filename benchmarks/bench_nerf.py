@@ -155,6 +155,9 @@ def plot(rows: "list[dict]", path: Path, title: str) -> None:
         line = ax.plot(xs, ys, "-", alpha=0.6)[0]
         ax.scatter(xs, ys, s=sizes, color=line.get_color(), alpha=0.7, label=f"{name} ({mine[-1]['model_mb']:.0f} MB)")
     ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # label the budgets instead
+    budgets = sorted({r["budget_s"] for r in rows})
+    ax.set_xticks(budgets, [f"{b:g}" for b in budgets])
     ax.set_xlabel("training seconds" + (" (CPU s / threads)" if rows and rows[0]["clock"] == "cpu" else ""))
     ax.set_ylabel("val PSNR (dB)")
     ax.set_title(f"{title}: speed against error (marker area ~ model MB)")

@@ -43,7 +43,7 @@ MARKER_DIR = "stages"
 RUN_RECORD = "run.json"
 NOT_NEEDED = "not needed"
 SKIPPED = "skipped"
-DEFAULT_CHAIN = ("sfm", "load", "check", "export", "report")
+DEFAULT_CHAIN = ("sfm", "load", "check", "train", "render", "mesh", "export", "report")
 """The chain of ``nerfpipe run`` without ``--stages`` or ``--pipeline``."""
 
 log = logging.getLogger("nerfpipe.stages")

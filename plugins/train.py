@@ -31,8 +31,8 @@ _RESUMABLE_CHANGES = ("iters", "time_budget", "resume", "device", "video_frames"
 class TrainStageConfig:
     """Options of the ``train`` stage."""
 
-    model: str = "vanilla"
-    """Registered model name (``nerfpipe.models`` entry points)."""
+    model: str = "fast"
+    """Registered model name (``nerfpipe.models`` entry points); ``fast`` in pipelines, ``vanilla`` for reference."""
     model_options: dict = field(default_factory=dict)
     """Overrides of the model's config, nested as the config is (e.g. ``{"field": {"width": 64}}``)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(video_frames=0))

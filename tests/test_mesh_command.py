@@ -118,6 +118,6 @@ def trimesh_load(path):
 
 
 def test_level_from_rendered_depth(fake_run, capsys):
-    assert main(["mesh", str(fake_run), "--resolution", "48", "--level-from", "depth", "--faces", "1000"]) == 0
+    assert main(["mesh", str(fake_run), "--resolution", "48", "--faces", "1000"]) == 0  # depth is the default
     figures = json.loads(capsys.readouterr().out)
     assert figures["level"] == pytest.approx(200.0, rel=0.15)  # the sphere model's density is 200 on its surface

@@ -23,7 +23,7 @@ from nerfpipe.stages import Pipeline, StageContext, StageSpec, atomic_path, conf
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "plugins" / "example_pointcloud"
-BUILTIN = {"sfm", "load", "check", "export"}
+BUILTIN = {"sfm", "load", "check", "export", "train", "render", "mesh", "report"}
 
 
 # ---------------------------------------------------------------- toy stages
@@ -325,6 +325,7 @@ def test_cli_run_and_stage(scene_path, tmp_path, capsys):
 
 TINY_TRAIN = {
     "train": {
+        "model": "vanilla",
         "model_options": {"num_samples": 8, "field": {"width": 16, "depth": 2, "skip": 1, "head_width": 16,
                                                       "pos_frequencies": 2, "dir_frequencies": 1}},
         "trainer": {"iters": 2, "rays_per_step": 32, "eval_every": 0, "final_eval_views": 1, "eval_scale": 0.1,

@@ -106,7 +106,7 @@ def test_time_budget_stops_training(tiny_scene, tmp_path):
 
 def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["train", str(tiny_npz), "--out", str(run), "--iters", "2", "--rays-per-step", "32", "--num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
+    args = ["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32", "--num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
     assert main(args) == 0
     assert main(["render", str(run), "--path", "orbit", "--depth", "--size", "12x10", "--frames", "2", "--background", "white"]) == 0
     import imageio.v3 as iio

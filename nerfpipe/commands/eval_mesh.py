@@ -59,32 +59,12 @@ def _against_mesh(pred, ref_mesh, threshold, samples) -> dict:
 
 
 def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
-    import numpy as np
-
     from data_adapters import load
     from nerfpipe.errors import NerfpipeError
-    from nerfpipe.mesh.metrics import default_threshold, point_fraction
-    from nerfpipe.synthetic import MESH_FILE
+    from nerfpipe.mesh.reference import dataset_references, reference_figures
 
-    scene = load(ref)
-    out = {}
-    if (ref / MESH_FILE).is_file():
-        from nerfpipe.mesh.export import read_mesh
-
-        out.update({f"gt_mesh_{k}": v for k, v in _against_mesh(pred, read_mesh(ref / MESH_FILE), threshold, samples).items()})
-    if scene.points is None or len(scene.points.xyz) == 0:
-        if out:
-            return out
-        raise NerfpipeError("the dataset has no sparse points to compare with (give a reference mesh instead)", ref)
-    tau = default_threshold(pred) if threshold is None else float(threshold)
-    pts = scene.world_from_input.inverse().apply_points(scene.points.xyz.double()).numpy()
-    total = len(pts)
-    if crop:
-        lo, hi = pred.bounds()
-        pts = pts[np.all((pts >= lo - tau) & (pts <= hi + tau), axis=1)]
-    if len(pts) == 0:
-        raise NerfpipeError("no sparse point lies near the mesh: is the mesh in the dataset's frame?", ref)
-    fig = point_fraction(pts, pred, tau)
-    out.update({"points_total": total, "points_used": fig["num_points"], "points_within_threshold": fig["fraction_within"],
-                "points_median_distance": fig["median_distance"], "threshold": tau})
-    return out
+    gt, points = dataset_references(load(ref), ref)
+    try:
+        return reference_figures(pred, gt, points, threshold, samples, crop, gt_prefix="gt_mesh_")
+    except NerfpipeError as exc:
+        raise NerfpipeError(exc.problem, ref) from None

@@ -73,7 +73,21 @@ def _figures(run_dir: Path) -> "list[str]":
         lines.append(f"check: {check['num_cameras']} cameras, conventions consistent (kornia {check['kornia_max_px']:.1e} px)")
     if (metrics := read(run_dir / "train" / "metrics.json")) is not None:
         lines.append(f"train: val PSNR {metrics['val_psnr']:.2f} dB after {metrics['iterations']} iterations")
+    if (mesh := read(run_dir / "mesh" / "mesh_metrics.json")) is not None:
+        lines.append(_mesh_line(mesh))
+    if (run_dir / "report.html").is_file():
+        lines.append(f"report: {(run_dir / 'report.html').resolve()}")
     return lines
+
+
+def _mesh_line(m: dict) -> str:
+    """The mesh figures against the reference: F-score and Chamfer (gt mesh), sparse points within threshold."""
+    parts = []
+    if "fscore" in m:
+        parts.append(f"F-score@1% {m['fscore']:.3f}, Chamfer-L1 {m['chamfer_l1']:.4f} (against {m.get('reference')})")
+    if "points_within_threshold" in m:
+        parts.append(f"{100 * m['points_within_threshold']:.1f}% of {m['points_used']} sparse points within {m['points_threshold']:.4f}")
+    return "mesh: " + "; ".join(parts)
 
 
 def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict):
@@ -101,7 +115,7 @@ def run(
 
     Args:
         path: dataset (COLMAP folder, transforms.json, .npz) or a folder of photos (SfM runs first).
-        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,export,report).
+        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,train,render,mesh,export,report).
         pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each.
         out: run folder (default: ``runs/<input name>``).
         time_budget: seconds the whole run may take (stages that can, stop early).
@@ -112,12 +126,18 @@ def run(
     _log_to(console)
     pipe = _pipeline(stages, pipeline, installed_stages(console))
     run_dir = out if out is not None else Path("runs") / Path(path).stem
+    run_and_print(pipe, path, run_dir, console, resume=resume, device=device, time_budget=time_budget)
+    return 0
+
+
+def run_and_print(pipe, path, run_dir: Path, console, **options):
+    """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed."""
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
-    result = pipe.run(path, run_dir, resume=resume, device=device, time_budget=time_budget)
+    result = pipe.run(path, run_dir, **options)
     console.print(_summary_table(result))
     for line in _figures(result.run_dir):
         console.print(line)
-    return 0
+    return result
 
 
 def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]) -> int:

@@ -7,11 +7,11 @@ from tyro.conf import Positional
 
 def train(
     path: Positional[Path],
-    model: str = "vanilla",
+    model: str = "fast",
     out: "Path | None" = None,
     iters: int = 1000,
     time_budget: "float | None" = None,
-    rays_per_step: int = 10000,
+    rays_per_step: int = 4096,
     lr: float = 5e-4,
     num_samples: "int | None" = None,
     eval_every: int = 100,
@@ -29,7 +29,8 @@ def train(
 
     Args:
         path: dataset file or folder.
-        model: registered model name (see the nerfpipe.models entry points).
+        model: registered model name (see the nerfpipe.models entry points): ``fast`` (the CPU
+            default: grids + occupancy grid) or ``vanilla`` (the classic MLP; course recipe: 10k rays).
         out: run folder (default: runs/<dataset>-<model>).
         iters: training iterations.
         time_budget: stop after this many seconds of training (validation excluded).
@@ -51,12 +52,15 @@ def train(
 
     from data_adapters import load
 
+    from nerfpipe.errors import NerfpipeError
     from nerfpipe.models.registry import get_model
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     spec = get_model(model)
     model_cfg = spec.config()
     if num_samples is not None:
+        if not any(f.name == "num_samples" for f in dataclasses.fields(model_cfg)):
+            raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
         model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
     scene = load(path)
     cfg = TrainerConfig(

@@ -6,10 +6,9 @@ points. :func:`write_ply` writes binary little-endian PLY (float xyz, uchar rgb,
 which Open3D, trimesh and MeshLab read.
 """
 
-import os
-import tempfile
 from pathlib import Path
 
+from nerfpipe.atomic import atomic_write
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.scene import Similarity
@@ -23,17 +22,8 @@ def to_input_frame(mesh: TriangleMesh, world_from_input: Similarity) -> Triangle
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write to a temporary file in the same folder, then rename over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write bytes through :func:`nerfpipe.atomic.atomic_write` (temporary, then ``os.replace``)."""
+    atomic_write(Path(path), lambda tmp: tmp.write_bytes(data))
 
 
 def ply_bytes(mesh: TriangleMesh) -> bytes:

@@ -80,6 +80,9 @@ class FastConfig:
     """Early ray termination: samples behind this transmittance are not shaded."""
     min_alpha: float = 1e-4
     """Samples less opaque than this are not shaded (after warm-up)."""
+    learned_background: "bool | None" = None
+    """Learn the colour behind the box per viewing direction (default: for scenes without alpha, where
+    the photographs show more than the box, e.g. COLMAP captures); otherwise the trainer's background."""
     distortion_weight: float = 0.0
     """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
     tv_weight: float = 0.0
@@ -131,10 +134,20 @@ class FastModel(Model):
         self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
+        learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
+        self.background = self._background_head() if learn_bg else None
         self._samples_per_ray = 0.0
         self._step = 0
         self._groups: "list[dict]" = []
         _install_hook()
+
+    @staticmethod
+    def _background_head() -> torch.nn.Module:
+        """Direction code -> colour offset from the trainer's background; starts at exactly zero."""
+        head = torch.nn.Sequential(torch.nn.Linear(16, 32), torch.nn.ReLU(), torch.nn.Linear(32, 3))
+        torch.nn.init.zeros_(head[2].weight)
+        torch.nn.init.zeros_(head[2].bias)
+        return head
 
     def _resolutions(self, aabb: Float[Tensor, "2 3"]) -> "list[tuple[int, int, int]]":
         extent = aabb[1] - aabb[0]
@@ -174,6 +187,9 @@ class FastModel(Model):
         shape = rays.shape
         flat = rays.reshape(-1)
         bg = background.expand(*shape, 3).reshape(-1, 3)
+        dir_code = direction_encoding(flat.directions)
+        if self.background is not None:
+            bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
         samples = self.grid.march(
             flat.origins, flat.directions, self.info.near, self.info.far, self._march_step(),
             jitter=self.training, aabb=self.march_box,
@@ -182,7 +198,7 @@ class FastModel(Model):
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
         sigma = self.field.density_from_corners(corners)
-        rgbs = self.field.rgb_from_corners(corners, direction_encoding(flat.directions)[samples.ray_indices])
+        rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
         rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
@@ -261,11 +277,12 @@ class FastModel(Model):
 
     def param_groups(self) -> "list[dict]":
         grids = list(self.field.density_grid.parameters()) + list(self.field.feature_grid.parameters())
-        fused = {"fused": True} if self.field.aabb.device.type in ("cpu", "cuda") else {}  # ~10x faster Adam on big grids
         self._groups = [
-            {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15, **fused},
-            {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15, **fused},
+            {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15},
+            {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15},
         ]
+        if self.background is not None:
+            self._groups[1]["params"] += list(self.background.parameters())
         return self._groups
 
     def stats(self) -> "dict[str, float]":

@@ -1,0 +1,108 @@
+"""A mesh of a trained model: the glue between a model, its scene and :func:`build_meshes`.
+
+Shared by ``nerfpipe mesh`` and the ``mesh`` stage. The model is used only through callables
+(``density_fn``, ``rgb_fn``, its occupancy grid's ``occupied``) and :func:`nerfpipe.render.render_cameras`
+(depth of training views for the automatic level and for TSDF fusion).
+"""
+
+from dataclasses import dataclass
+
+from nerfpipe.mesh.pipeline import MeshConfig, MeshOutputs
+
+
+@dataclass
+class RenderedViews:
+    """Training views rendered for the mesh (the depth level and TSDF fusion)."""
+
+    tsdf_views: int = 48
+    """Training views rendered for tsdf (evenly spread)."""
+    tsdf_size: int = 256
+    """Longer side in pixels of the tsdf depth renders."""
+    chunk: int = 4096
+    """Rays per forward pass when rendering."""
+
+
+def mesh_model(cfg: MeshConfig, model, scene, views: "RenderedViews | None" = None, device: str = "cpu") -> MeshOutputs:
+    """Extract, clean, colour and simplify the mesh of ``model`` trained on ``scene`` (world frame)."""
+    import torch
+
+    from nerfpipe.mesh.pipeline import build_meshes
+
+    views = views or RenderedViews()
+    aabb, occupancy_fn = box_and_occupancy(model, scene.aabb)
+    train = scene.split_cameras("train")
+    frame_fn, tsdf_cams = None, None
+    if cfg.method == "tsdf":
+        tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device)
+    depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from == "depth"
+    points = surface_points(model, train, views.chunk, device) if depth_level else None
+    with torch.no_grad():
+        return build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn,
+                            frame_fn=frame_fn, cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points)
+
+
+def box_and_occupancy(model, scene_aabb):
+    """The box to mesh: the occupancy grid's occupied box (one cell margin) when the model has one."""
+    import torch
+
+    grid = getattr(model, "grid", None)
+    if grid is None or not hasattr(grid, "occupied_aabb"):
+        return scene_aabb.float(), None
+    box = grid.occupied_aabb().float().cpu()
+    cell = (grid.aabb[1] - grid.aabb[0]).float().cpu() / grid.cfg.resolution
+    box = torch.stack([torch.maximum(box[0] - cell, grid.aabb[0].cpu()), torch.minimum(box[1] + cell, grid.aabb[1].cpu())])
+    return box, lambda p: grid.occupied(p.to(grid.aabb.device))
+
+
+def surface_points(model, train, chunk: int, device: str, views: int = 8, size: int = 128):
+    """Where the rays of a few rendered training views end (opaque pixels only), world frame."""
+    import torch
+
+    from nerfpipe.rays import camera_rays
+    from nerfpipe.render import render_cameras
+
+    idx = torch.linspace(0, len(train) - 1, min(views, len(train))).round().long().unique()
+    cams = resize_each(train[idx], size / torch.maximum(train[idx].width, train[idx].height).double())
+    pts = []
+    for i, view in enumerate(render_cameras(model, cams.to(device), chunk)):
+        rays = camera_rays(cams, i)
+        opaque = view.acc.cpu() > 0.9
+        pts.append(rays.points_at(view.surface_depth.cpu())[opaque])
+    return torch.cat(pts)
+
+
+def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str):
+    """Undistorted, resized training cameras and a ``frame_fn`` rendering their depth and colour."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from nerfpipe.rays import camera_rays
+    from nerfpipe.render import render_cameras
+
+    idx = torch.from_numpy(np.unique(np.linspace(0, len(train) - 1, min(views, len(train))).round().astype(np.int64)))
+    cams = train[idx]
+    cams = dataclasses.replace(cams, distortion=torch.zeros_like(cams.distortion), dist_params=torch.zeros_like(cams.dist_params))
+    cams = resize_each(cams, size / torch.maximum(cams.width, cams.height).double())
+
+    def frame(i: int):
+        view = render_cameras(model, cams[i : i + 1].to(device), chunk)[0]
+        depth = torch.where(view.acc > 0.5, view.surface_depth, torch.zeros_like(view.depth)).cpu()
+        z = depth * camera_rays(cams, i).z_scale
+        return z.double().numpy(), (view.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+    return cams, frame
+
+
+def resize_each(cams, scale):
+    """Scale every camera by its own factor (sizes may differ within a scene)."""
+    from nerfpipe.cameras import Cameras
+    from nerfpipe.render import resize_cameras
+
+    parts = []
+    for i in range(len(cams)):
+        w = max(1, int(round(float(cams.width[i]) * float(scale[i]))))
+        h = max(1, int(round(float(cams.height[i]) * float(scale[i]))))
+        parts.append(resize_cameras(cams[i : i + 1], w, h))
+    return Cameras.cat(parts)

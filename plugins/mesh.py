@@ -1,0 +1,77 @@
+"""Stage ``mesh``: a mesh of the trained model, as ``nerfpipe mesh`` makes it, plus geometry metrics.
+
+Uses :func:`nerfpipe.mesh.trained.mesh_model` and :func:`nerfpipe.mesh.pipeline.write_meshes`, the
+same functions as ``nerfpipe mesh``, and writes the folder ``mesh/`` atomically: ``mesh.ply``,
+``mesh_simplified.ply``, ``mesh_views.png``, ``mesh.json`` (in the input dataset's frame).
+
+When the input offers a reference (a synthetic scene's ``gt_mesh.ply``, COLMAP sparse points),
+``mesh/mesh_metrics.json`` holds the figures of :func:`nerfpipe.mesh.reference.reference_figures`
+for ``mesh.ply``: F-score at 1% of the reference's diagonal, Chamfer-L1, accuracy, completeness
+(against the mesh) and the fraction of sparse points within the threshold.
+"""
+
+import json
+from dataclasses import dataclass, field
+
+from nerfpipe.mesh.pipeline import MeshConfig
+from nerfpipe.mesh.trained import RenderedViews
+from nerfpipe.stages import StageContext, StageSpec, atomic_path
+
+MESH_DIR = "mesh"
+MESH_PLY = f"{MESH_DIR}/mesh.ply"
+MESH_JSON = f"{MESH_DIR}/mesh.json"
+METRICS_FILE = "mesh_metrics.json"
+
+
+@dataclass
+class MeshStageConfig:
+    """Options of the ``mesh`` stage (the defaults of ``nerfpipe mesh``)."""
+
+    mesh: MeshConfig = field(default_factory=lambda: MeshConfig(level_from="depth"))
+    """Extraction, cleaning and simplification."""
+    views: RenderedViews = field(default_factory=RenderedViews)
+    """Training views rendered for the depth level and TSDF fusion."""
+    evaluate: bool = True
+    """Compare with the input's ground-truth mesh / sparse points when it has them."""
+    threshold: "float | None" = None
+    """Distance threshold of the F-score (default: 1% of the reference mesh's diagonal, or of the mesh's)."""
+    samples: int = 100_000
+    """Points sampled on each surface for the metrics."""
+
+
+def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame) -> "dict | None":
+    """The geometry figures against the input's references; None when it has none."""
+    from nerfpipe.mesh.reference import dataset_references, reference_figures
+
+    gt, points = dataset_references(scene, ctx.source)
+    if gt is None and points is None:
+        return None
+    reference = "gt_mesh.ply" if gt is not None else "sparse points"
+    return {"reference": reference, **reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples)}
+
+
+def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
+    from nerfpipe.mesh.export import to_input_frame
+    from nerfpipe.mesh.pipeline import write_meshes
+    from nerfpipe.mesh.trained import mesh_model
+
+    scene, model = ctx.get("scene"), ctx.get("model")
+    result = mesh_model(config.mesh, model, scene, config.views, ctx.device)
+    figures = evaluate(config, ctx, scene, to_input_frame(result.full, scene.world_from_input)) if config.evaluate else None
+    with atomic_path(ctx.path(MESH_DIR)) as tmp:
+        write_meshes(result, tmp, scene.world_from_input)
+        if figures is not None:
+            (tmp / METRICS_FILE).write_text(json.dumps(figures, indent=2) + "\n")
+    ctx.log.info("mesh: %d faces%s", result.full.num_faces, "" if figures is None else
+                 f", F-score {figures.get('fscore', float('nan')):.3f} against {figures['reference']}")
+    return {MESH_PLY: ctx.path(MESH_PLY), MESH_JSON: ctx.path(MESH_JSON)}
+
+
+STAGE = StageSpec(
+    name="mesh",
+    description="mesh of the trained model (marching cubes or TSDF), cleaned and simplified, with geometry metrics",
+    config=MeshStageConfig,
+    run=run,
+    requires=("scene", "model"),
+    produces=(MESH_PLY, MESH_JSON),
+)
