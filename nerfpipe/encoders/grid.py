@@ -8,7 +8,7 @@ Glossary:
     corners   the ``2^D`` vertices of the cell around a point; (multi)linear weights sum to 1
 
 Implementation: all levels share one channels-last table ``[num_vertices, F]``; a single
-``embedding_bag(mode="sum", per_sample_weights=...)`` gathers the ``2^D`` corners of every level and
+:func:`nerfpipe.functional.gather.weighted_gather` gathers the ``2^D`` corners of every level and
 sums them with their interpolation weights (about 3x faster than ``grid_sample`` on CPU, and it
 handles hashed levels). Gradients flow to the table and to ``x`` (through the weights).
 :meth:`GridEncoder._reference_forward` is the slow, obvious per-level, per-corner reference.
@@ -19,9 +19,9 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
+from nerfpipe.functional.gather import weighted_gather
 from nerfpipe.typing import Float, Int, Tensor
 
 # Instant-NGP's per-dimension hashing primes (the first is 1 for cache coherence).
@@ -85,7 +85,7 @@ class GridEncoder(nn.Module):
     def interpolate(self, idx: Int[Tensor, "N levels C"], w: Float[Tensor, "N levels C"]) -> Float[Tensor, "N E"]:
         """Features from precomputed :meth:`corners` (cache them when the points never move)."""
         n, levels, n_corners = idx.shape
-        out = _WeightedGather.apply(self.table, idx.reshape(-1, n_corners), w.reshape(-1, n_corners).to(self.table))
+        out = weighted_gather(self.table, idx.reshape(-1, n_corners), w.reshape(-1, n_corners).to(self.table))
         return out.reshape(n, levels * self.config.features_per_level)
 
     def corners(self, x: Float[Tensor, "N D"]) -> tuple[Int[Tensor, "N levels C"], Float[Tensor, "N levels C"]]:
@@ -149,25 +149,3 @@ class GridEncoder(nn.Module):
         }
 
 
-class _WeightedGather(torch.autograd.Function):
-    """``out[b] = sum_c w[b, c] * table[idx[b, c]]``: embedding_bag forward, index_add backward.
-
-    ``embedding_bag``'s own backward sorts the indices and is several times slower on CPU than a
-    plain ``index_add_`` into a zero gradient table.
-    """
-
-    @staticmethod
-    def forward(ctx, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
-        ctx.save_for_backward(table, idx, w)
-        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
-
-    @staticmethod
-    def backward(ctx, grad_out: Tensor) -> "tuple[Tensor | None, None, Tensor | None]":
-        table, idx, w = ctx.saved_tensors
-        grad_table = grad_w = None
-        if ctx.needs_input_grad[0]:
-            contrib = (w[:, :, None] * grad_out[:, None, :]).reshape(-1, table.shape[1])
-            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib)
-        if ctx.needs_input_grad[2]:
-            grad_w = (table[idx] * grad_out[:, None, :]).sum(-1)
-        return grad_table, None, grad_w

@@ -17,6 +17,7 @@ Glossary:
 import torch
 from torch import nn
 
+from nerfpipe.functional.gather import weighted_gather
 from nerfpipe.typing import Float, Int, Tensor
 
 # corner offsets (di, dj, dk) in the order of the eight trilinear weights
@@ -42,34 +43,11 @@ def trilinear_corners(
     return base[:, None] + offsets, w
 
 
-class _Gather(torch.autograd.Function):
-    """``out[n] = sum_k w[n, k] * table[idx[n, k]]`` with a single ``index_add_`` backward."""
-
-    @staticmethod
-    def forward(ctx, table, idx, w):
-        n, c = idx.shape[0], table.shape[1]
-        rows = table.index_select(0, idx.reshape(-1)).view(n, 8, c)
-        ctx.save_for_backward(table, idx, w)
-        return torch.bmm(w[:, None, :], rows)[:, 0]
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        table, idx, w = ctx.saved_tensors
-        grad_table = grad_w = None
-        if ctx.needs_input_grad[0]:
-            contrib = (w[:, :, None] * grad_out[:, None, :]).reshape(-1, table.shape[1])
-            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib)
-        if ctx.needs_input_grad[2]:
-            rows = table.index_select(0, idx.reshape(-1)).view(idx.shape[0], 8, -1)
-            grad_w = torch.bmm(rows, grad_out[:, :, None])[..., 0]
-        return grad_table, None, grad_w
-
-
 def grid_gather(
     table: Float[Tensor, "num_cells C"], idx: Int[Tensor, "num_points 8"], w: Float[Tensor, "num_points 8"]
 ) -> Float[Tensor, "num_points C"]:
     """Weighted sum of eight table rows per point (differentiable in ``table`` and ``w``)."""
-    return _Gather.apply(table, idx, w)
+    return weighted_gather(table, idx, w)
 
 
 def trilinear(
