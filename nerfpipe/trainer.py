@@ -11,7 +11,6 @@ optimiser step and callbacks; validation, checkpoints and plots are excluded.
 """
 
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,6 +70,14 @@ def scene_info(scene: SceneData) -> SceneInfo:
     cams = scene.split_cameras("train")
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha)
+
+
+def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
+    """Forget the optimiser state of parameters a model resized in a callback (e.g. grids
+    resampled to a tightened box): Adam's moments no longer match their shape."""
+    for p, st in list(optimizer.state.items()):
+        if any(isinstance(v, torch.Tensor) and v.ndim > 0 and v.shape != p.shape for v in st.values()):
+            optimizer.state[p] = {}
 
 
 def backgrounds(mode: str, has_alpha: bool) -> "tuple[str, str]":
@@ -148,6 +155,7 @@ class Trainer:
         losses = self.model.get_losses(outputs, batch.rgb)
         self.optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
+        drop_stale_optimizer_state(self.optimizer)
         self.optimizer.step()
         self.step += 1
         self.fire(Callback.AFTER_TRAIN_ITERATION)

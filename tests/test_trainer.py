@@ -132,3 +132,18 @@ def test_rgba_targets_use_the_batch_background():
     assert not torch.equal(bg[0], bg[1])  # random per ray
     assert backgrounds("auto", True) == ("random", "white") and backgrounds("auto", False) == ("black", "black")
     assert background_colors("white", 2).tolist() == [[1.0, 1.0, 1.0]] * 2
+
+
+def test_stale_optimizer_state_of_resized_parameters_is_dropped():
+    from nerfpipe.trainer import drop_stale_optimizer_state
+
+    keep, resized = torch.nn.Parameter(torch.ones(3)), torch.nn.Parameter(torch.ones(4))
+    opt = torch.optim.Adam([keep, resized], lr=0.1)
+    (keep.sum() + resized.sum()).backward()
+    opt.step()
+    resized.data = torch.ones(6)  # a model resampled this grid
+    resized.grad = torch.ones(6)
+    drop_stale_optimizer_state(opt)
+    assert opt.state[resized] == {} and opt.state[keep]["exp_avg"].shape == (3,)
+    opt.step()  # would raise on the shape mismatch without the drop
+    assert opt.state[resized]["exp_avg"].shape == (6,)

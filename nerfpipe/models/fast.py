@@ -15,8 +15,6 @@ from dataclasses import dataclass, field
 from collections.abc import Callable
 
 import torch
-from torch.optim.optimizer import register_optimizer_step_pre_hook
-import torch.nn.functional as F
 
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples
 from nerfpipe.fields.fast_field import FastField, direction_encoding
@@ -103,22 +101,6 @@ class FastConfig:
         return out
 
 
-def _reset_resized_state(optimizer, args, kwargs) -> None:
-    """Global optimiser pre-step hook: forget state of parameters whose shape changed (grid resampling)."""
-    for p, st in list(optimizer.state.items()):
-        if any(isinstance(v, Tensor) and v.ndim > 0 and v.shape != p.shape for v in st.values()):
-            optimizer.state[p] = {}
-
-
-_HOOK = None
-
-
-def _install_hook() -> None:
-    global _HOOK
-    if _HOOK is None:
-        _HOOK = register_optimizer_step_pre_hook(_reset_resized_state)
-
-
 class FastModel(Model):
     """Grid field + occupancy grid + packed volume rendering."""
 
@@ -139,7 +121,6 @@ class FastModel(Model):
         self._samples_per_ray = 0.0
         self._step = 0
         self._groups: "list[dict]" = []
-        _install_hook()
 
     @staticmethod
     def _background_head() -> torch.nn.Module:
