@@ -62,3 +62,19 @@ def test_mesh_metrics_against_the_ground_truth(tiny_run):
     assert 0.0 <= m["points_within_threshold"] <= 1.0 and 0 < m["points_used"] <= m["points_total"]
     page = (result.run_dir / "report.html").read_text()
     assert "Against the reference" in page and f"{m['fscore']:.3g}"[:4] in page
+
+
+def test_train_stage_takes_its_share_of_the_pipeline_budget(tmp_path):
+    from dataclasses import replace
+
+    from plugins.train import TrainStageConfig, _trainer_config
+    from nerfpipe.stages import StageContext
+
+    stage = TrainStageConfig()
+    share = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0)).time_budget
+    assert 0.6 * 99.0 < share <= 0.6 * 100.0  # budget_share of what is left
+    capped = replace(stage, trainer=replace(stage.trainer, time_budget=30.0))
+    assert _trainer_config(capped, StageContext(run_dir=tmp_path, time_budget=100.0)).time_budget == 30.0
+    assert _trainer_config(stage, StageContext(run_dir=tmp_path)).time_budget is None
+    spent = StageContext(run_dir=tmp_path, time_budget=10.0, started=0.0)  # started long ago: nothing left
+    assert _trainer_config(stage, spent).time_budget == 0.0

@@ -115,9 +115,20 @@ def test_level_from_surface_points_puts_the_surface_on_them():
 
     dirs = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     jitter = 0.004 * torch.randn(500, generator=torch.Generator().manual_seed(1))
-    level = level_from_surface_points(soft_sphere, dirs * (R + jitter)[:, None])
+    level = level_from_surface_points(soft_sphere, dirs * (R + jitter)[:, None], quantile=0.5)
     assert level == pytest.approx(50.0, rel=0.1)  # soft_sphere is peak / 2 = 50 on the sphere
     r = extract_mesh(soft_sphere, BOX, resolution=64, level=level)
     assert np.linalg.norm(r.mesh.vertices, axis=1).mean() == pytest.approx(R, abs=0.003)
     with pytest.raises(NerfpipeError, match="no opaque"):
         level_from_surface_points(soft_sphere, torch.zeros(0, 3))
+
+
+@pytest.mark.parametrize("quantile", [0.05, 0.1, 0.5])
+def test_level_quantile_encloses_that_share_of_the_surface_points(quantile):
+    from nerfpipe.mesh.extract import level_from_surface_points
+
+    gen = torch.Generator().manual_seed(2)
+    pts = torch.nn.functional.normalize(torch.randn(2000, 3, generator=gen), dim=-1) * (R + 0.02 * torch.randn(2000, 1, generator=gen))
+    level = level_from_surface_points(soft_sphere, pts, quantile=quantile)
+    inside = (soft_sphere(pts) >= level).float().mean()
+    assert float(inside) == pytest.approx(1 - quantile, abs=0.01)

@@ -6,9 +6,15 @@ from pathlib import Path
 
 
 def demo_configs(train_seconds: float, mesh_resolution: int = 192, frames: int = 36) -> dict:
-    """Stage options of the demo: a time-capped ``fast`` training on the scene's white background."""
+    """Stage options of the demo: a time-capped ``fast`` training on the scene's white background.
+
+    The background must be white: the images have no alpha, so the trainer's ``auto`` mode would
+    composite on black, and rays that miss the model's box could never render the white around
+    the object (val PSNR near 12 dB instead of above 20 after a minute).
+    """
     return {
-        "train": {"model": "fast", "trainer": {"iters": 100_000, "time_budget": train_seconds, "background": "white", "eval_every": 50}},
+        "train": {"model": "fast", "trainer": {"iters": 100_000, "time_budget": train_seconds, "background": "white",
+                                               "rays_per_step": 4096, "eval_every": 100}},
         "render": {"frames": frames},
         "mesh": {"mesh": {"resolution": mesh_resolution}},
     }

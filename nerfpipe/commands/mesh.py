@@ -36,7 +36,7 @@ def mesh(
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).
         level: density iso-level for mc (default: chosen by --level-from).
-        level_from: automatic level: depth (the median density where rays of rendered training
+        level_from: automatic level: depth (a low quantile, 0.1, of the density where rays of rendered training
             views end; the default, as trained fields often peak below the opacity level) or
             opacity (ln 2 / voxel size, one voxel half opaque).
         min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters).

@@ -41,7 +41,10 @@ class MeshConfig:
     level: "float | None" = None
     """Density iso-level (mc); default: chosen by ``level_from``."""
     level_from: Literal["opacity", "depth"] = "opacity"
-    """Automatic level: opacity (one voxel half opaque, ln 2 / h) or depth (median density where rendered rays end)."""
+    """Automatic level: opacity (one voxel half opaque, ln 2 / h) or depth (see ``level_quantile``)."""
+    level_quantile: float = 0.1
+    """With ``level_from=depth``: the level is this quantile of the densities where rendered rays end,
+    i.e. the surface encloses ``1 - level_quantile`` of the observed surface points."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
     min_component: float = 0.05
@@ -73,7 +76,7 @@ def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras,
         if level is None and cfg.level_from == "depth":
             if surface_points is None:
                 raise NerfpipeError("a level from depth needs rendered surface points")
-            level = level_from_surface_points(density_fn, surface_points, cfg.chunk)
+            level = level_from_surface_points(density_fn, surface_points, cfg.chunk, cfg.level_quantile)
         res = extract_mesh(density_fn, aabb, cfg.resolution, level, occupancy_fn, cfg.chunk)
         figures.update(level=res.level, voxel_size=res.voxel_size, evaluated_fraction=res.evaluated_fraction)
         return res.mesh
