@@ -17,11 +17,13 @@ Blender/NeRF/nerfstudio ``transform_matrix`` is camera-to-world in the OpenGL co
 (+y up, camera looks along -z); :func:`opengl_to_opencv` converts it.
 """
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import torch
 
 from nerfpipe.functional.distortion import Distortion, distort, undistort
+from nerfpipe.tensor_dataclass import TensorDataclass
 from nerfpipe.typing import Float, Int, Tensor
 
 # OpenGL camera axes expressed in OpenCV camera axes: flip y and z.
@@ -51,7 +53,7 @@ def invert_rigid(m: Float[Tensor, "*bs 4 4"]) -> Float[Tensor, "*bs 4 4"]:
 
 
 @dataclass
-class Cameras:
+class Cameras(TensorDataclass):
     """A batch of cameras in the OpenCV convention (see the module docstring).
 
     All fields share the batch shape ``*bs``. Index, reshape and move it like a tensor:
@@ -76,6 +78,8 @@ class Cameras:
     """Distortion model code, a :class:`Distortion` value."""
     dist_params: Float[Tensor, "*bs 4"]
     """Distortion parameters: k1 k2 p1 p2 (OPENCV) or k1 k2 k3 k4 (FISHEYE); zeros for NONE."""
+
+    _batch_field: ClassVar[str] = "fx"
 
     # ---------------------------------------------------------------- construction
     @classmethod
@@ -110,48 +114,9 @@ class Cameras:
             dist_params=params.expand(*bs, 4).clone(),
         )
 
-    # ---------------------------------------------------------------- tensor-like behaviour
-    @property
-    def shape(self) -> torch.Size:
-        return self.fx.shape
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, idx) -> "Cameras":
-        return replace(self, **{f.name: getattr(self, f.name)[idx] for f in fields(self)})
-
-    def to(self, device=None, dtype: "torch.dtype | None" = None) -> "Cameras":
-        """Move to a device; ``dtype`` changes the floating-point fields only."""
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = v.to(device=device, dtype=dtype) if (dtype is not None and v.is_floating_point()) else v.to(device)
-        return Cameras(**out)
-
-    def expand(self, *shape: int) -> "Cameras":
-        """Broadcast a batch of shape ``()`` to ``shape`` without copying (views)."""
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = v.expand(*shape, *v.shape[len(self.shape):])
-        return Cameras(**out)
-
-    def reshape(self, *shape: int) -> "Cameras":
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            extra = v.shape[len(self.shape):]
-            out[f.name] = v.reshape(*shape, *extra)
-        return Cameras(**out)
-
     @staticmethod
     def cat(cams: "list[Cameras]") -> "Cameras":
         return Cameras(**{f.name: torch.cat([getattr(c, f.name) for c in cams]) for f in fields(Cameras)})
-
-    @property
-    def device(self) -> torch.device:
-        return self.fx.device
 
     # ---------------------------------------------------------------- derived quantities
     @property

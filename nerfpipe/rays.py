@@ -6,17 +6,19 @@ Glossary:
     t        distance along a unit-length ray direction
 """
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 
 from nerfpipe.cameras import Cameras
+from nerfpipe.tensor_dataclass import TensorDataclass
 from nerfpipe.typing import Float, Int, Tensor
 
 
 @dataclass
-class RayBundle:
+class RayBundle(TensorDataclass):
     """A batch of rays in world coordinates."""
 
     origins: Float[Tensor, "*bs 3"]
@@ -29,25 +31,7 @@ class RayBundle:
     """Camera-z depth per unit distance along the ray (cosine to the optical axis);
     ``depth_z = t * z_scale``."""
 
-    @property
-    def shape(self) -> torch.Size:
-        return self.cam_idx.shape
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, idx) -> "RayBundle":
-        return replace(self, **{f.name: getattr(self, f.name)[idx] for f in fields(self)})
-
-    def to(self, device) -> "RayBundle":
-        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self)})
-
-    def reshape(self, *shape: int) -> "RayBundle":
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = v.reshape(*shape, *v.shape[len(self.shape):])
-        return RayBundle(**out)
+    _batch_field: ClassVar[str] = "cam_idx"
 
     def points_at(self, t: Float[Tensor, "*bs"]) -> Float[Tensor, "*bs 3"]:
         return self.origins + t[..., None] * self.directions

@@ -5,16 +5,17 @@ Glossary:
     positions          world points at the interval midpoints, where the field is evaluated
 """
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
+from typing import ClassVar
 
-import torch
 
 from nerfpipe.rays import RayBundle
+from nerfpipe.tensor_dataclass import TensorDataclass
 from nerfpipe.typing import Float, Tensor
 
 
 @dataclass
-class RaySamples:
+class RaySamples(TensorDataclass):
     """Intervals along a batch of rays and the world points that stand for them."""
 
     t_starts: Float[Tensor, "*bs num_samples"]
@@ -26,6 +27,8 @@ class RaySamples:
     directions: Float[Tensor, "*bs num_samples 3"]
     """Unit ray directions, repeated for each sample (an expanded view, not a copy)."""
 
+    _batch_field: ClassVar[str] = "t_starts"
+
     @classmethod
     def from_edges(cls, rays: RayBundle, edges: Float[Tensor, "*bs num_edges"]) -> "RaySamples":
         """Samples at the midpoints of the intervals between consecutive ``edges``."""
@@ -36,16 +39,9 @@ class RaySamples:
         return cls(t_starts=starts, t_ends=ends, positions=positions, directions=directions)
 
     @property
-    def shape(self) -> torch.Size:
-        return self.t_starts.shape
-
-    @property
     def deltas(self) -> Float[Tensor, "*bs num_samples"]:
         return self.t_ends - self.t_starts
 
     @property
     def t_mids(self) -> Float[Tensor, "*bs num_samples"]:
         return 0.5 * (self.t_starts + self.t_ends)
-
-    def __getitem__(self, idx) -> "RaySamples":
-        return replace(self, **{f.name: getattr(self, f.name)[idx] for f in fields(self)})
