@@ -40,6 +40,17 @@ def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
     return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, 11).mean())
 
 
+def eval_size(width: int, height: int, scale: float, max_size: "int | None") -> "tuple[int, int]":
+    """Size of a validation render: ``scale`` of the camera's, the longer side capped at ``max_size``.
+
+    Example:
+        >>> eval_size(1920, 1440, 1.0, 800), eval_size(200, 200, 1.0, 800), eval_size(400, 400, 0.5, None)
+        ((800, 600), (200, 200), (200, 200))
+    """
+    s = scale if max_size is None else min(scale, max_size / max(width, height))
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
 def validate(trainer, num_views: int) -> "tuple[float, float]":
     """Mean (PSNR, SSIM) over ``num_views`` val views (0: all); logs it and keeps a snapshot of view 0."""
     scene, cfg = trainer.scene, trainer.cfg
@@ -47,7 +58,7 @@ def validate(trainer, num_views: int) -> "tuple[float, float]":
     idx = [int(i) for i in scene.splits[split]]
     idx = idx[: num_views] if num_views else idx
     cams = scene.cameras[torch.tensor(idx)]
-    sizes = [(max(1, round(int(w) * cfg.eval_scale)), max(1, round(int(h) * cfg.eval_scale))) for w, h in zip(cams.width, cams.height)]
+    sizes = [eval_size(int(w), int(h), cfg.eval_scale, cfg.eval_max_size) for w, h in zip(cams.width, cams.height)]
     bg = background_colors(trainer.eval_bg, 1)[0]
     scores = []
     for i, (w, h) in zip(range(len(idx)), sizes):
@@ -83,6 +94,7 @@ def finish(trainer) -> dict:
         "val_ssim": ssim,
         "val_views": cfg.final_eval_views or len(trainer.scene.splits[eval_split(trainer.scene)]),
         "eval_scale": cfg.eval_scale,
+        "eval_max_size": cfg.eval_max_size,
         "train_seconds": trainer.train_seconds,
         "iterations": trainer.step,
         "seconds_per_iteration": trainer.train_seconds / max(trainer.step, 1),

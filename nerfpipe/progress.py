@@ -49,3 +49,10 @@ class TrainProgress:
 
     def log(self, text: str) -> None:
         self.progress.console.print(text)
+
+
+def track(items, description: str, total: "int | None" = None):
+    """Iterate ``items`` with a progress bar on stderr (frames rendered, views fused, ...)."""
+    from rich.progress import track as rich_track
+
+    return rich_track(items, description=description, total=total, console=Console(stderr=True), transient=True)

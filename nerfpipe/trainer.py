@@ -44,6 +44,9 @@ class TrainerConfig:
     """Validation views for the final metrics (0: all of the val split)."""
     eval_scale: float = 1.0
     """Resolution factor of validation renders (ground truth is area-resized to match)."""
+    eval_max_size: "int | None" = 800
+    """Longer side of validation renders in pixels at most, after ``eval_scale`` (phone photographs are
+    scored at a reduced size; None: no cap)."""
     seed: int = 0
     """Seed of model initialisation, ray sampling and jitter (CPU runs are deterministic)."""
     device: str = "cpu"
@@ -107,6 +110,8 @@ class Trainer:
         # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
         fused = torch.device(cfg.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
+        for group in self.optimizer.param_groups:  # the schedule scales these (saved with the optimiser)
+            group.setdefault("initial_lr", group["lr"])
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device)
         self.step, self.train_seconds = 0, 0.0
@@ -128,7 +133,10 @@ class Trainer:
 
     def load_state(self, state: dict) -> None:
         self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        initial = [group["initial_lr"] for group in self.optimizer.param_groups]
+        self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
+        for group, lr in zip(self.optimizer.param_groups, initial):
+            group["initial_lr"] = lr
         torch.set_rng_state(state["torch_rng"])
         self.generator.set_state(state["sampler_rng"])
         self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
@@ -150,6 +158,7 @@ class Trainer:
     def train_step(self) -> float:
         """One optimiser step; returns the colour MSE of the batch."""
         self.fire(Callback.BEFORE_TRAIN_ITERATION)
+        self.apply_lr()
         batch = self.sampler.sample(self.cfg.rays_per_step, self.generator)
         outputs = self.model.get_outputs(batch.rays, batch.background)
         losses = self.model.get_losses(outputs, batch.rgb)
@@ -160,6 +169,13 @@ class Trainer:
         self.step += 1
         self.fire(Callback.AFTER_TRAIN_ITERATION)
         return float(torch.mean((outputs.rgb.detach() - batch.rgb) ** 2))
+
+    def apply_lr(self) -> None:
+        """Set every group's rate from the model's schedule (on the optimiser's own groups: loading a
+        checkpoint replaces them, so a model must not keep references to the dicts it handed over)."""
+        factor = self.model.lr_factor(self.step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["initial_lr"] * factor
 
     def done(self) -> bool:
         budget = self.cfg.time_budget

@@ -1,5 +1,10 @@
 """Stage ``render``: novel views of the trained model, an orbit in colour and depth.
 
+Frames are at most ``max_size`` pixels on their longer side (phone photographs are not rendered at
+full size). Under a pipeline time budget the first frame is timed and the stage keeps to
+``budget_share`` of the time left: fewer frames (never below ``min_frames``), then smaller ones.
+The plan actually used is in ``orbit.json`` (``frames``, ``width``, ``height``, ``budget_plan``).
+
 Uses :func:`nerfpipe.orbit.path_cameras`, :func:`nerfpipe.render.render_cameras` and
 :func:`nerfpipe.artifacts.write_sequence`, the same functions as ``nerfpipe render``, and writes the
 folder ``render/``: ``orbit.gif``, ``orbit.mp4``, ``depth_orbit.gif`` and ``orbit.json`` (frame
@@ -8,6 +13,8 @@ rendered views are also returned in memory (``views``).
 """
 
 import json
+import math
+import time
 from dataclasses import dataclass
 from typing import Literal
 
@@ -30,6 +37,40 @@ class RenderConfig:
     """Rays per forward pass (bounds memory)."""
     fps: float = 15.0
     """Frames per second of the GIFs and the video."""
+    max_size: int = 400
+    """Longer side of the frames in pixels at most (after ``scale``)."""
+    min_frames: int = 12
+    """Under a time budget, never fewer frames than this (the resolution drops instead)."""
+    budget_share: float = 0.4
+    """Share of the pipeline's remaining time budget this stage may spend."""
+
+
+@dataclass(frozen=True)
+class FramePlan:
+    """How many frames, at what fraction of the configured size."""
+
+    frames: int
+    scale: float
+    estimated_seconds: float
+
+
+def plan_frames(config: RenderConfig, seconds_per_frame: float, time_left: "float | None") -> FramePlan:
+    """Frames and scale that fit ``budget_share * time_left``, from the time one frame took.
+
+    Without a budget, or when every frame fits, the configured count at full size. Otherwise as many
+    frames as fit, down to ``min_frames``; below that the frames shrink (time follows pixel count),
+    to no less than a quarter of the side.
+    """
+    per = max(seconds_per_frame, 1e-6)
+    if time_left is None or config.frames * per <= config.budget_share * time_left:
+        return FramePlan(config.frames, 1.0, config.frames * per)
+    allowed = config.budget_share * time_left
+    fitting = int(allowed // per)
+    if fitting >= config.min_frames:
+        return FramePlan(fitting, 1.0, fitting * per)
+    frames = min(config.min_frames, config.frames)
+    scale = max(0.25, min(1.0, math.sqrt(allowed / (frames * per))))
+    return FramePlan(frames, scale, frames * per * scale**2)
 
 
 def _background(ctx: StageContext, scene):
@@ -47,17 +88,35 @@ def run(config: RenderConfig, ctx: StageContext) -> "dict[str, object]":
     from nerfpipe.orbit import path_cameras
     from nerfpipe.render import render_cameras, resize_cameras
 
+    from nerfpipe.progress import track
+
     scene, model = ctx.get("scene"), ctx.get("model")
-    cams = path_cameras(scene, config.path, config.frames)
-    w, h = (max(1, round(int(v) * config.scale)) for v in (cams.width[0], cams.height[0]))
-    cams = resize_cameras(cams, w, h).to(ctx.device)
-    views = render_cameras(model, cams, config.chunk, _background(ctx, scene).to(ctx.device))
+    background = _background(ctx, scene).to(ctx.device)
+    start = time.perf_counter()
+    sized = lambda cams, s: resize_cameras(cams, *frame_size(cams, config, s)).to(ctx.device)  # noqa: E731
+    first = render_cameras(model, sized(path_cameras(scene, config.path, config.frames)[:1], 1.0), config.chunk, background)
+    plan = plan_frames(config, time.perf_counter() - start, ctx.time_left())
+    cams = sized(path_cameras(scene, config.path, plan.frames), plan.scale)
+    reuse = plan.scale == 1.0 and config.path == "orbit"  # an orbit's first frame is the same for any count
+    views = first if reuse else []
+    for i in track(range(1 if reuse else 0, len(cams)), "render", total=len(cams) - (1 if reuse else 0)):
+        views += render_cameras(model, cams[i : i + 1], config.chunk, background)
+    w, h = int(cams.width[0]), int(cams.height[0])
     with atomic_path(ctx.path(RENDER_DIR)) as tmp:
         info = write_sequence(views, tmp, config.path, depth=True, fps=config.fps)
         info = {k: v.replace(str(tmp), str(ctx.path(RENDER_DIR))) if isinstance(v, str) else v for k, v in info.items()}
+        info.update(frames=len(views), width=w, height=h, budget_plan={"frames": plan.frames, "scale": plan.scale,
+                    "estimated_seconds": plan.estimated_seconds, "seconds": time.perf_counter() - start})
         (tmp / f"{config.path}.json").write_text(json.dumps(info, indent=2) + "\n")
     ctx.log.info("render: %d frames of %dx%d -> %s/", len(views), w, h, RENDER_DIR)
     return {"views": views}
+
+
+def frame_size(cams, config: RenderConfig, extra_scale: float) -> "tuple[int, int]":
+    """Width and height of the frames: ``scale``, capped at ``max_size`` on the longer side, times ``extra_scale``."""
+    w, h = int(cams.width[0]), int(cams.height[0])
+    s = min(config.scale, config.max_size / max(w, h)) * extra_scale
+    return max(1, round(w * s)), max(1, round(h * s))
 
 
 STAGE = StageSpec(

@@ -83,6 +83,10 @@ class Model(nn.Module):
         """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
+    def lr_factor(self, step: int) -> float:
+        """Learning-rate multiplier at ``step`` (the trainer applies it to every group's ``initial_lr``)."""
+        return 1.0
+
     def stats(self) -> "dict[str, int | float]":
         """Figures for metrics.json (parameters, MB, occupied fraction, ...)."""
         n = sum(p.numel() for p in self.parameters())

@@ -120,7 +120,6 @@ class FastModel(Model):
         self.background = self._background_head() if learn_bg else None
         self._samples_per_ray = 0.0
         self._step = 0
-        self._groups: "list[dict]" = []
 
     @staticmethod
     def _background_head() -> torch.nn.Module:
@@ -218,15 +217,12 @@ class FastModel(Model):
             self.march_box.copy_(self.grid.occupied_aabb())
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
-        self._decay_lr(step)
 
-    def _decay_lr(self, step: int) -> None:
-        """Exponential decay of the groups handed to the optimiser (it keeps the same dicts)."""
+    def lr_factor(self, step: int) -> float:
+        """Exponential decay: tenfold every ``lr_decay_steps``, floored at ``lr_min_factor``."""
         if not self.cfg.lr_decay_steps:
-            return
-        factor = max(self.cfg.lr_min_factor, 0.1 ** (step / self.cfg.lr_decay_steps))
-        for group, base in zip(self._groups, (self.cfg.grid_lr, self.cfg.mlp_lr)):
-            group["lr"] = base * factor
+            return 1.0
+        return max(self.cfg.lr_min_factor, 0.1 ** (step / self.cfg.lr_decay_steps))
 
     @torch.no_grad()
     def tighten(self) -> None:
@@ -258,13 +254,13 @@ class FastModel(Model):
 
     def param_groups(self) -> "list[dict]":
         grids = list(self.field.density_grid.parameters()) + list(self.field.feature_grid.parameters())
-        self._groups = [
+        groups = [
             {"params": grids, "lr": self.cfg.grid_lr, "eps": 1e-15},
             {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15},
         ]
         if self.background is not None:
-            self._groups[1]["params"] += list(self.background.parameters())
-        return self._groups
+            groups[1]["params"] += list(self.background.parameters())
+        return groups
 
     def stats(self) -> "dict[str, float]":
         out = {k: float(v) for k, v in super().stats().items()}
