@@ -24,6 +24,7 @@ def _presets() -> dict:
 
     return {
         "vanilla": ("vanilla", VanillaConfig(), {"rays_per_step": 1024, "lr": 5e-4}),
+        "fast": ("fast", FastConfig(), {"rays_per_step": 4096}),
         "fast-small": ("fast", FastConfig(preset="small"), {"rays_per_step": 4096}),
         "fast-medium": ("fast", FastConfig(preset="medium"), {"rays_per_step": 4096}),
         "fast-large": ("fast", FastConfig(preset="large"), {"rays_per_step": 4096}),
@@ -31,6 +32,28 @@ def _presets() -> dict:
 
 
 PRESET_NAMES = ("vanilla", "fast-small", "fast-medium", "fast-large")
+"""Default presets; ``fast`` (capacity chosen from the scene) is also available."""
+
+
+def resolve_preset(name: str):
+    """``(model name, model config, trainer overrides)`` of a preset, with optional model-option
+    overrides after a colon: ``fast-small:distortion_weight=0.001,tv_weight=1e-5``."""
+    import dataclasses
+
+    from nerfpipe.errors import NerfpipeError
+
+    base, _, options = name.partition(":")
+    presets = _presets()
+    if base not in presets:
+        raise NerfpipeError(f"unknown bench preset {base!r}; choose from {', '.join(presets)}")
+    model_name, model_cfg, over = presets[base]
+    for item in filter(None, options.split(",")):
+        key, _, value = item.partition("=")
+        if key not in {f.name for f in dataclasses.fields(model_cfg)}:
+            raise NerfpipeError(f"bench preset {name!r}: {model_name} has no option {key!r}")
+        kind = type(getattr(model_cfg, key))
+        model_cfg = dataclasses.replace(model_cfg, **{key: kind(value) if kind in (int, float, str) else float(value)})
+    return model_name, model_cfg, over
 
 
 @dataclass
@@ -74,14 +97,14 @@ class _Clock:
 def _trainer(scene, name: str, cfg: BenchConfig, out: Path):
     from nerfpipe.trainer import Trainer, TrainerConfig
 
-    model_name, model_cfg, over = _presets()[name]
+    model_name, model_cfg, over = resolve_preset(name)
     if cfg.rays_per_step:
         over = dict(over, rays_per_step=cfg.rays_per_step)
     tcfg = TrainerConfig(
         iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, seed=cfg.seed, device=cfg.device,
         eval_scale=cfg.eval_scale, **over,
     )
-    return Trainer(tcfg, scene, model_name, model_cfg, out / name)
+    return Trainer(tcfg, scene, model_name, model_cfg, out / name.replace(":", "__").replace(",", "_"))
 
 
 def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -> dict:
@@ -175,11 +198,8 @@ def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
     import torch
     from data_adapters import load
 
-    from nerfpipe.errors import NerfpipeError
-
-    unknown = [p for p in cfg.presets if p not in _presets()]
-    if unknown:
-        raise NerfpipeError(f"unknown bench preset(s) {', '.join(unknown)}; choose from {', '.join(PRESET_NAMES)}")
+    for name in cfg.presets:
+        resolve_preset(name)  # every name is checked before anything trains
     torch.set_num_threads(cfg.threads)
     scene = load(path)
     out.mkdir(parents=True, exist_ok=True)

@@ -40,3 +40,19 @@ def test_bench_run_scores_each_budget(scene_path, tmp_path):
     assert [r["budget_s"] for r in rows] == [0.2, 0.5]
     assert rows[0]["clock_s"] >= 0.2 and rows[1]["clock_s"] >= 0.5 and rows[1]["iterations"] >= rows[0]["iterations"] >= 1
     assert (tmp_path / "out" / "table.md").is_file()
+
+
+def test_preset_overrides_reach_the_model_config():
+    import pytest
+
+    from benchmarks.bench_nerf import resolve_preset
+    from nerfpipe.errors import NerfpipeError
+
+    name, cfg, over = resolve_preset("fast-small:distortion_weight=0.001,tv_weight=1e-5,tighten_step=128")
+    assert name == "fast" and cfg.preset == "small" and over["rays_per_step"] == 4096
+    assert (cfg.distortion_weight, cfg.tv_weight, cfg.tighten_step) == (0.001, 1e-5, 128)
+    assert resolve_preset("fast")[1].preset == "auto"
+    with pytest.raises(NerfpipeError, match="no option 'nope'"):
+        resolve_preset("fast-small:nope=1")
+    with pytest.raises(NerfpipeError, match="unknown bench preset"):
+        resolve_preset("fast-tiny")

@@ -24,7 +24,7 @@ def bench(
         path: dataset file or folder (any format data_adapters.load reads).
         out: output folder.
         budgets: training seconds at which each preset is scored (render time excluded).
-        presets: vanilla, fast-small, fast-medium, fast-large.
+        presets: vanilla, fast (capacity from the scene), fast-small, fast-medium, fast-large; model options may follow a colon, e.g. ``fast-small:distortion_weight=0.001,tv_weight=1e-5``.
         eval_views: validation views scored at each budget (0: all).
         eval_scale: resolution factor of the validation renders.
         rays_per_step: override every preset's rays per iteration.
