@@ -8,8 +8,13 @@ When the input offers a reference (a synthetic scene's ``gt_mesh.ply``, COLMAP s
 ``mesh/mesh_metrics.json`` holds the figures of :func:`nerfpipe.mesh.reference.reference_figures`
 for ``mesh.ply``: F-score at 1% of the reference's diagonal, Chamfer-L1, accuracy, completeness
 (against the mesh) and the fraction of sparse points within the threshold.
+
+Under a time budget (``ctx.time_left()``) the marching-cubes resolution is lowered (256 -> 192 -> 128)
+when the estimated cost does not fit half the time left; mesh.json records ``resolution`` and
+``resolution_requested``.
 """
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 
@@ -27,7 +32,7 @@ METRICS_FILE = "mesh_metrics.json"
 class MeshStageConfig:
     """Options of the ``mesh`` stage (the defaults of ``nerfpipe mesh``)."""
 
-    mesh: MeshConfig = field(default_factory=lambda: MeshConfig(level_from="depth"))
+    mesh: MeshConfig = field(default_factory=MeshConfig)
     """Extraction, cleaning and simplification."""
     views: RenderedViews = field(default_factory=RenderedViews)
     """Training views rendered for the depth level and TSDF fusion."""
@@ -39,15 +44,34 @@ class MeshStageConfig:
     """Points sampled on each surface for the metrics."""
 
 
-def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame) -> "dict | None":
-    """The geometry figures against the input's references; None when it has none."""
+def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame, box_world) -> "dict | None":
+    """The geometry figures against the input's references; None when it has none.
+
+    The sparse points "on the object" are those inside the box that was meshed (world frame).
+    """
+    import numpy as np
+
     from nerfpipe.mesh.reference import dataset_references, reference_figures
 
     gt, points = dataset_references(scene, ctx.source)
     if gt is None and points is None:
         return None
+    on_object = None
+    if points is not None:
+        lo, hi = np.asarray(box_world, dtype=np.float64)
+        xyz = scene.points.xyz.double().cpu().numpy()
+        on_object = np.all((xyz >= lo) & (xyz <= hi), axis=1)
     reference = "gt_mesh.ply" if gt is not None else "sparse points"
-    return {"reference": reference, **reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples)}
+    return {"reference": reference, **reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples, on_object=on_object)}
+
+
+def budgeted(cfg: MeshConfig, seconds_left: "float | None") -> MeshConfig:
+    """``cfg`` with the marching-cubes resolution lowered when the time left is short (see resolution_for_budget)."""
+    from nerfpipe.mesh.pipeline import resolution_for_budget
+
+    if cfg.method != "mc":
+        return cfg
+    return dataclasses.replace(cfg, resolution=resolution_for_budget(cfg.resolution, seconds_left))
 
 
 def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
@@ -56,8 +80,12 @@ def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
     from nerfpipe.mesh.trained import mesh_model
 
     scene, model = ctx.get("scene"), ctx.get("model")
-    result = mesh_model(config.mesh, model, scene, config.views, ctx.device)
-    figures = evaluate(config, ctx, scene, to_input_frame(result.full, scene.world_from_input)) if config.evaluate else None
+    seconds_left = ctx.time_left()
+    cfg = budgeted(config.mesh, seconds_left)
+    result = mesh_model(cfg, model, scene, config.views, ctx.device)
+    result.figures.update(resolution_requested=config.mesh.resolution, seconds_left_at_start=seconds_left)
+    full = to_input_frame(result.full, scene.world_from_input)
+    figures = evaluate(config, ctx, scene, full, result.figures["box_world"]) if config.evaluate else None
     with atomic_path(ctx.path(MESH_DIR)) as tmp:
         write_meshes(result, tmp, scene.world_from_input)
         if figures is not None:

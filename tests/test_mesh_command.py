@@ -79,7 +79,7 @@ def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
     assert main(["mesh", str(fake_run), "--resolution", "32", "--level", "1e6"]) == 2
     assert "outside the density range" in capsys.readouterr().err
     assert main(["mesh", str(fake_run), "--resolution", "32", "--faces", "100000000"]) == 2
-    assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "depth", "--level", "1e6"]) == 2
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "quantile", "--level", "1e6"]) == 2
     assert "not below" in capsys.readouterr().err
     assert not (fake_run / "mesh").exists()
 
@@ -117,7 +117,17 @@ def trimesh_load(path):
     return trimesh.load(path, process=False)
 
 
-def test_level_from_rendered_depth(fake_run, capsys):
-    assert main(["mesh", str(fake_run), "--resolution", "48", "--faces", "1000"]) == 0  # depth is the default
+@pytest.mark.parametrize("rule", ["agreement", "quantile"])
+def test_level_from_rendered_depth(fake_run, capsys, rule):
+    assert main(["mesh", str(fake_run), "--resolution", "48", "--faces", "1000", "--level-from", rule]) == 0
     figures = json.loads(capsys.readouterr().out)
-    assert figures["level"] == pytest.approx(200.0, rel=0.15)  # the sphere model's density is 200 on its surface
+    assert figures["level_rule"] == rule
+    if rule == "quantile":  # the density at expected depth: 200 on the sphere model's surface
+        assert figures["level"] == pytest.approx(200.0, rel=0.15)
+    else:  # rays become half opaque where 400 * 0.01 * softplus((r - R) / 0.01) = ln 2: r = R + 0.017
+        assert 30.0 < figures["level"] < 120.0 and len(figures["level_candidates"]) > 10
+    full = trimesh_load(fake_run / "mesh" / "mesh.ply")
+    centre = WORLD_FROM_INPUT.inverse().apply_points(torch.zeros(1, 3, dtype=torch.float64))[0].numpy()
+    radii = 2.0 * np.linalg.norm(full.vertices - centre, axis=1)  # world units (scale 2)
+    front = RADIUS + (0.017 if rule == "agreement" else 0.0)  # where the surface was put
+    assert abs(radii.mean() - front) < 0.5 * figures["voxel_size"]

@@ -2,6 +2,7 @@
 
 * :func:`remove_small_components` drops floaters: connected pieces whose bounding-box diagonal
   is a small fraction of the whole mesh's;
+* :func:`faces_near_box_sides` marks the faces along the sides of the meshed box (fog walls);
 * :func:`visible_faces` marks the faces some training camera sees (a z-buffer test against
   a ray-cast depth map per camera), so faces no camera sees (inner blobs) can be dropped;
 * :func:`close_holes` fills holes up to a number of boundary edges;
@@ -16,7 +17,7 @@ from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.rays import camera_rays
-from nerfpipe.typing import Bool
+from nerfpipe.typing import Bool, Float
 
 
 def _meshset(mesh: TriangleMesh):
@@ -40,6 +41,17 @@ def remove_small_components(mesh: TriangleMesh, min_diameter_fraction: float = 0
     out = _result(ms, mesh)
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
     return out
+
+
+def faces_near_box_sides(mesh: TriangleMesh, aabb: Float[np.ndarray, "2 3"], distance: float) -> Bool[np.ndarray, "num_faces"]:
+    """Faces with a vertex within ``distance`` of a side of the box ``[min, max]``.
+
+    A field that cannot place the background (walls, a far table) inside its box paints it on the
+    box's sides; marching cubes turns that paint into walls that run along the sides ("fog walls").
+    """
+    lo, hi = np.asarray(aabb, dtype=np.float64)
+    near = np.any((mesh.vertices - lo < distance) | (hi - mesh.vertices < distance), axis=1)
+    return near[mesh.faces].any(axis=1)
 
 
 def close_holes(mesh: TriangleMesh, max_hole_edges: int = 30) -> TriangleMesh:

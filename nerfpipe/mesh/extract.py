@@ -4,13 +4,14 @@ The field is sampled on a regular grid over the scene box, slab by slab (a chunk
 at a time), skipping space an occupancy test marks empty; scikit-image's marching cubes then
 extracts the iso-surface ``density == level``.
 
-Choosing the level (:func:`auto_level`). A density has no natural iso-value, but the
-renderer gives one a meaning: a ray crossing a slab of thickness ``h`` with density σ is
-blocked with probability ``1 - exp(-σ h)``. The default level is the density at which one
-voxel of the extraction grid is half opaque, ``σ = ln 2 / h``: a surface the mesh resolves
-is one a ray stops at within one voxel. It grows with the resolution, as a finer grid can
-resolve thinner (denser) shells. Pass ``level`` to override it, or take it from rendered
-depth with :func:`level_from_surface_points` (a low quantile of the density where rendered rays end).
+Choosing the level. A density has no natural iso-value, but the renderer gives one a
+meaning: a ray crossing a slab of thickness ``h`` with density σ is blocked with probability
+``1 - exp(-σ h)``. :func:`auto_level` is the density at which one voxel of the extraction grid
+is half opaque, ``σ = ln 2 / h``: a surface the mesh resolves is one a ray stops at within one
+voxel. :func:`level_from_surface_points` takes a low quantile of the density where rendered rays
+end. Both misplace the thin shells trained grid fields learn; the default of the mesh pipeline
+is :func:`nerfpipe.mesh.level.choose_level`, the level whose surface best agrees with rendered
+depth, which meshes one sampled :class:`Volume` (:func:`sample_volume`) at several levels.
 """
 
 import math
@@ -164,6 +165,57 @@ def check_level(volume: Float[Tensor, "nx ny nz"], level: float) -> None:
         raise NerfpipeError(f"level {level:.4g} is outside the density range [{lo:.4g}, {hi:.4g}] of the field: no surface at that level; choose a level inside the range")
 
 
+@dataclass
+class Volume:
+    """Densities sampled on a grid: sample once, then mesh at as many levels as needed."""
+
+    grid: Grid
+    """Where the samples are."""
+    values: Float[Tensor, "nx ny nz"]
+    """Density at each sample (0 where the occupancy test skipped it)."""
+    evaluated_fraction: float = 1.0
+    """Fraction of samples where the field was called."""
+
+    @property
+    def min(self) -> float:
+        return float(self.values.min())
+
+    @property
+    def max(self) -> float:
+        return float(self.values.max())
+
+    def downsampled(self, factor: int) -> "Volume":
+        """Every ``factor``-th sample per axis: the same field on a grid ``factor`` times coarser."""
+        if factor < 1:
+            raise NerfpipeError(f"downsampling factor must be at least 1, got {factor}")
+        values = self.values[::factor, ::factor, ::factor].contiguous()
+        return Volume(Grid(self.grid.origin, self.grid.spacing * factor, tuple(values.shape)), values, self.evaluated_fraction)
+
+
+def sample_volume(
+    density_fn: DensityFn,
+    aabb: Float[Tensor, "2 3"],
+    resolution: int = 256,
+    occupancy_fn: "OccupancyFn | None" = None,
+    chunk: int = 1 << 18,
+    device: "str | torch.device" = "cpu",
+) -> Volume:
+    """Sample ``density_fn`` on the grid of :meth:`Grid.over_box` (see :func:`extract_mesh` for the args)."""
+    grid = Grid.over_box(aabb, resolution)
+    mask = _occupied_mask(grid, occupancy_fn, chunk, device)
+    values = _sample_grid(grid, density_fn, mask, chunk, device)
+    return Volume(grid, values, 1.0 if mask is None else float(mask.float().mean()))
+
+
+def mesh_volume(volume: Volume, level: float) -> ExtractResult:
+    """Marching cubes of a sampled volume at ``level``."""
+    check_level(volume.values, level)
+    grid = volume.grid
+    verts, faces, normals = _marching_cubes(volume.values.numpy(), level, grid)
+    mesh = TriangleMesh(verts, faces, info={"method": "mc", "level": level, "voxel_size": grid.spacing, "grid_shape": list(grid.shape)})
+    return ExtractResult(mesh, normals, level, grid.spacing, volume.evaluated_fraction)
+
+
 def extract_mesh(
     density_fn: DensityFn,
     aabb: Float[Tensor, "2 3"],
@@ -175,6 +227,9 @@ def extract_mesh(
     device: "str | torch.device" = "cpu",
 ) -> ExtractResult:
     """Extract the surface ``density == level`` of a field with marching cubes.
+
+    The same as :func:`sample_volume` then :func:`mesh_volume`; use those two to try several
+    levels on one sampled volume (:func:`nerfpipe.mesh.level.choose_level`).
 
     Args:
         density_fn: density at world points, ``[N, 3] -> [N]``.
@@ -198,13 +253,7 @@ def extract_mesh(
     """
     grid = Grid.over_box(aabb, resolution)
     level = auto_level(grid.spacing, level_opacity) if level is None else float(level)
-    mask = _occupied_mask(grid, occupancy_fn, chunk, device)
-    volume = _sample_grid(grid, density_fn, mask, chunk, device)
-    check_level(volume, level)
-    verts, faces, normals = _marching_cubes(volume.numpy(), level, grid)
-    fraction = 1.0 if mask is None else float(mask.float().mean())
-    mesh = TriangleMesh(verts, faces, info={"method": "mc", "level": level, "voxel_size": grid.spacing, "grid_shape": list(grid.shape)})
-    return ExtractResult(mesh, normals, level, grid.spacing, fraction)
+    return mesh_volume(sample_volume(density_fn, aabb, resolution, occupancy_fn, chunk, device), level)
 
 
 def _marching_cubes(volume: np.ndarray, level: float, grid: Grid):

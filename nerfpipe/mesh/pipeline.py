@@ -16,11 +16,12 @@ from typing import Literal
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
-from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, visible_faces
+from nerfpipe.mesh.clean import close_holes, faces_near_box_sides, hausdorff_distance, remove_small_components, simplify, visible_faces
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
-from nerfpipe.mesh.extract import DensityFn, OccupancyFn, extract_mesh, level_from_surface_points
+from nerfpipe.mesh.extract import DensityFn, OccupancyFn, Volume, auto_level, level_from_surface_points, mesh_volume, sample_volume
+from nerfpipe.mesh.level import choose_level
 from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
 from nerfpipe.scene import Similarity
@@ -40,11 +41,26 @@ class MeshConfig:
     """Grid samples along the longest side of the box (mc), or TSDF voxels along it (tsdf)."""
     level: "float | None" = None
     """Density iso-level (mc); default: chosen by ``level_from``."""
-    level_from: Literal["opacity", "depth"] = "opacity"
-    """Automatic level: opacity (one voxel half opaque, ln 2 / h) or depth (see ``level_quantile``)."""
+    level_from: Literal["agreement", "quantile", "opacity"] = "agreement"
+    """Automatic level (mc). agreement: the candidate level whose surface is closest to the points where
+    rendered training rays end (at their median depth in the sampled volume when the ray origins are given; clamped Chamfer distance, candidates meshed on a ``level_downsample`` times
+    coarser copy of the sampled volume; see :mod:`nerfpipe.mesh.level`); quantile: the ``level_quantile``
+    quantile of the density at those points; opacity: one voxel half opaque, ln 2 / h. agreement and
+    quantile need rendered surface points."""
     level_quantile: float = 0.1
-    """With ``level_from=depth``: the level is this quantile of the densities where rendered rays end,
+    """With ``level_from=quantile``: the level is this quantile of the densities where rendered rays end,
     i.e. the surface encloses ``1 - level_quantile`` of the observed surface points."""
+    level_downsample: int = 2
+    """With ``level_from=agreement``: candidates are meshed on every n-th sample per axis."""
+    level_clamp: float = 3.0
+    """With ``level_from=agreement``: a point's distance counts at most this many coarse voxels."""
+    crop_to_points: bool = True
+    """Mesh only the robust extent of the input's sparse points (2-98% per axis, grown by ``crop_margin``),
+    intersected with the occupied box; inputs without sparse points keep the occupied box."""
+    crop_margin: float = 0.05
+    """Growth of the sparse points' extent, as a fraction of it."""
+    box_sides: float = 2.0
+    """Drop faces within this many voxels of the meshed box's sides (background painted on the box: fog walls); 0: keep."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
     min_component: float = 0.05
@@ -59,6 +75,28 @@ class MeshConfig:
     """Points per density / colour call."""
 
 
+BUDGET_RESOLUTIONS = (256, 192, 128)
+"""Resolutions :func:`resolution_for_budget` steps down through."""
+
+
+def mesh_seconds(resolution: int, seconds_fixed: float = 20.0, seconds_per_million: float = 2.0) -> float:
+    """Rough cost of a marching-cubes mesh on 2 CPU cores: a fixed part (depth renders, level search,
+    cleaning, simplification, metrics) plus a part proportional to the grid samples (field calls)."""
+    return seconds_fixed + seconds_per_million * resolution**3 / 1e6
+
+
+def resolution_for_budget(resolution: int, seconds_left: "float | None", share: float = 0.5) -> int:
+    """The largest of ``resolution`` and the lower :data:`BUDGET_RESOLUTIONS` whose :func:`mesh_seconds`
+    fits in ``share`` of the time left (the smallest when none fits); ``resolution`` without a budget."""
+    if seconds_left is None:
+        return resolution
+    options = [resolution] + [r for r in BUDGET_RESOLUTIONS if r < resolution]
+    for r in options:
+        if mesh_seconds(r) <= share * seconds_left:
+            return r
+    return options[-1]
+
+
 @dataclass
 class MeshOutputs:
     """Meshes in the world frame and the figures that go into mesh.json."""
@@ -68,27 +106,49 @@ class MeshOutputs:
     figures: dict = field(default_factory=dict)
 
 
-def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface_points, figures) -> TriangleMesh:
+def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures) -> TriangleMesh:
     if cfg.method == "mc":
         if density_fn is None:
             raise NerfpipeError("marching cubes needs a density field")
-        level = cfg.level
-        if level is None and cfg.level_from == "depth":
-            if surface_points is None:
-                raise NerfpipeError("a level from depth needs rendered surface points")
-            level = level_from_surface_points(density_fn, surface_points, cfg.chunk, cfg.level_quantile)
-        res = extract_mesh(density_fn, aabb, cfg.resolution, level, occupancy_fn, cfg.chunk)
-        figures.update(level=res.level, voxel_size=res.voxel_size, evaluated_fraction=res.evaluated_fraction)
+        volume = sample_volume(density_fn, aabb, cfg.resolution, occupancy_fn, cfg.chunk)
+        start = time.perf_counter()
+        level = _level(cfg, volume, density_fn, surface, figures)
+        figures["seconds_level"] = time.perf_counter() - start
+        res = mesh_volume(volume, level)
+        figures.update(level=res.level, voxel_size=res.voxel_size, resolution=cfg.resolution, evaluated_fraction=res.evaluated_fraction)
         return res.mesh
     if frame_fn is None or cameras is None:
         raise NerfpipeError("TSDF fusion needs rendered depth and the training cameras")
     voxel = float((aabb[1] - aabb[0]).max()) / cfg.resolution
-    figures.update(voxel_size=voxel)
+    figures.update(voxel_size=voxel, resolution=cfg.resolution)
     return tsdf_fuse(cameras, frame_fn, aabb, voxel)
 
 
-def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict) -> TriangleMesh:
+def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) -> float:
+    """The iso-level by ``cfg.level`` or ``cfg.level_from``; records the rule (and candidates) in ``figures``."""
+    if cfg.level is not None:
+        figures["level_rule"] = "given"
+        return float(cfg.level)
+    if cfg.level_from == "opacity":
+        figures["level_rule"] = "opacity"
+        return auto_level(volume.grid.spacing)
+    if surface is None:
+        raise NerfpipeError(f"level_from={cfg.level_from} needs rendered surface points; give a level or use level_from=opacity")
+    surface_points, surface_origins = surface
+    if cfg.level_from == "quantile":
+        figures.update(level_rule="quantile", level_quantile=cfg.level_quantile)
+        return level_from_surface_points(density_fn, surface_points, cfg.chunk, cfg.level_quantile)
+    choice = choose_level(volume, surface_points, surface_origins, cfg.level_downsample, cfg.level_clamp)
+    figures.update(choice.to_dict())
+    return choice.level
+
+
+def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None) -> TriangleMesh:
     figures["faces_extracted"] = mesh.num_faces
+    if cfg.box_sides > 0 and aabb is not None:
+        near = faces_near_box_sides(mesh, aabb.double().cpu().numpy(), cfg.box_sides * figures["voxel_size"])
+        figures["box_side_faces_removed"] = int(near.sum())
+        mesh = mesh.submesh(~near)
     if cfg.remove_unseen and cameras is not None:
         start = time.perf_counter()
         seen = visible_faces(mesh, cameras)
@@ -128,6 +188,7 @@ def build_meshes(
     frame_fn: "FrameFn | None" = None,
     cameras: "Cameras | None" = None,
     surface_points: "Float[Tensor, 'num_points 3'] | None" = None,
+    surface_origins: "Float[Tensor, 'num_points 3'] | None" = None,
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify, all in the world frame; writes nothing.
 
@@ -139,15 +200,18 @@ def build_meshes(
         occupancy_fn: skip test for empty space (mc).
         frame_fn: depth and colour per camera index (tsdf).
         cameras: the training cameras (tsdf input; unseen-face removal).
-        surface_points: where rendered rays end (mc with ``level_from="depth"``).
+        surface_points: where rendered rays end (mc with ``level_from`` agreement or quantile).
+        surface_origins: their ray origins (agreement then uses the rays' median depth in the volume).
     """
     if cfg.faces is not None and cfg.faces < 4:
         raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
     figures: dict = {"method": cfg.method}
     t0 = time.perf_counter()
-    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface_points, figures)
+    surface = None if surface_points is None else (surface_points, surface_origins)
+    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures)
     t1 = time.perf_counter()
-    mesh = _clean(mesh, cfg, cameras, figures)
+    figures["box_world"] = aabb.tolist()
+    mesh = _clean(mesh, cfg, cameras, figures, aabb)
     if cfg.colors and cfg.method == "mc" and rgb_fn is not None:
         mesh = vertex_colors(mesh, rgb_fn, chunk=cfg.chunk)
     if not cfg.colors:

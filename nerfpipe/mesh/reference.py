@@ -8,27 +8,59 @@ import numpy as np
 
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Float
+from nerfpipe.typing import Bool, Float
 
 
-def points_figures(mesh: TriangleMesh, points: Float[np.ndarray, "num_points 3"], threshold: "float | None" = None, crop: bool = True) -> dict:
-    """Fraction of ``points`` within the threshold of ``mesh`` (default: 1% of the mesh's diagonal).
+def points_figures(
+    mesh: TriangleMesh,
+    points: Float[np.ndarray, "num_points 3"],
+    threshold: "float | None" = None,
+    crop: bool = True,
+    on_object: "Bool[np.ndarray, 'num_points'] | None" = None,
+) -> dict:
+    """How well ``mesh`` and sparse ``points`` agree, at a threshold (default: 1% of the mesh's diagonal).
 
-    With ``crop``, only the points inside the mesh's box grown by the threshold count (the points
-    on the object, not the background).
+    * ``points_within_threshold``: fraction of the points *on the object* within the threshold of the
+      mesh (completeness). Which points are on the object is stated in ``points_object_rule``: those of
+      ``on_object`` (e.g. inside the box that was meshed), else with ``crop`` those inside the mesh's
+      box grown by the threshold, else all; ``points_excluded`` counts the others.
+    * ``points_all_within_threshold``: the same fraction over all points.
+    * ``mesh_area_near_points``: fraction of the mesh's area within the threshold of some point
+      (accuracy; a fog mesh has most of its area far from every point). Sparse points are sparse,
+      so a good mesh scores well below 1 on texture-less parts; compare meshes by it, not with 1.
     """
     from nerfpipe.mesh.metrics import default_threshold, point_fraction
 
     tau = default_threshold(mesh) if threshold is None else float(threshold)
-    total = len(points)
+    points = np.asarray(points, dtype=np.float64)
+    rule, keep = _object_points(mesh, points, tau, crop, on_object)
+    if not keep.any():
+        raise NerfpipeError("no sparse point lies near the mesh: is the mesh in the dataset's frame?")
+    fig, every = point_fraction(points[keep], mesh, tau), point_fraction(points, mesh, tau)
+    return {"points_total": len(points), "points_used": fig["num_points"], "points_excluded": int((~keep).sum()),
+            "points_object_rule": rule, "points_within_threshold": fig["fraction_within"],
+            "points_all_within_threshold": every["fraction_within"], "points_median_distance": fig["median_distance"],
+            "mesh_area_near_points": area_near_points(mesh, points, tau), "points_threshold": tau}  # fmt: skip
+
+
+def _object_points(mesh: TriangleMesh, points: np.ndarray, tau: float, crop: bool, on_object) -> "tuple[str, np.ndarray]":
+    if on_object is not None:
+        return "inside the meshed box", np.asarray(on_object, dtype=bool)
     if crop:
         lo, hi = mesh.bounds()
-        points = points[np.all((points >= lo - tau) & (points <= hi + tau), axis=1)]
-    if len(points) == 0:
-        raise NerfpipeError("no sparse point lies near the mesh: is the mesh in the dataset's frame?")
-    fig = point_fraction(points, mesh, tau)
-    return {"points_total": total, "points_used": fig["num_points"], "points_within_threshold": fig["fraction_within"],
-            "points_median_distance": fig["median_distance"], "points_threshold": tau}  # fmt: skip
+        return "inside the mesh's bounds grown by the threshold", np.all((points >= lo - tau) & (points <= hi + tau), axis=1)
+    return "all", np.ones(len(points), dtype=bool)
+
+
+def area_near_points(mesh: TriangleMesh, points: Float[np.ndarray, "num_points 3"], threshold: float, samples: int = 100_000) -> float:
+    """Fraction of the mesh's area within ``threshold`` of some point (area-uniform surface samples)."""
+    from scipy.spatial import cKDTree
+
+    from nerfpipe.mesh.metrics import sample_surface
+
+    surface, _ = sample_surface(mesh, samples)
+    d, _ = cKDTree(np.asarray(points, dtype=np.float64)).query(surface, distance_upper_bound=threshold)
+    return float(np.mean(d < threshold))
 
 
 def reference_figures(
@@ -39,6 +71,7 @@ def reference_figures(
     samples: int = 100_000,
     crop: bool = True,
     gt_prefix: str = "",
+    on_object: "Bool[np.ndarray, 'num_points'] | None" = None,
 ) -> dict:
     """F-score, Chamfer... against ``gt_mesh`` (keys prefixed by ``gt_prefix``) and the points figures.
 
@@ -54,7 +87,7 @@ def reference_figures(
     if gt_mesh is not None:
         out.update({f"{gt_prefix}{k}": v for k, v in compare_meshes(mesh, gt_mesh, threshold, num_samples=samples).to_dict().items()})
     if has_points:
-        out.update(points_figures(mesh, np.asarray(points, dtype=np.float64), threshold, crop))
+        out.update(points_figures(mesh, np.asarray(points, dtype=np.float64), threshold, crop, on_object))
     return out
 
 

@@ -9,6 +9,9 @@ from dataclasses import dataclass
 
 from nerfpipe.mesh.pipeline import MeshConfig, MeshOutputs
 
+MIN_CROP_POINTS = 20
+"""Fewer sparse points than this do not define an extent to crop to."""
+
 
 @dataclass
 class RenderedViews:
@@ -30,15 +33,29 @@ def mesh_model(cfg: MeshConfig, model, scene, views: "RenderedViews | None" = No
 
     views = views or RenderedViews()
     aabb, occupancy_fn = box_and_occupancy(model, scene.aabb)
+    if cfg.crop_to_points and scene.points is not None and len(scene.points.xyz) >= MIN_CROP_POINTS:
+        aabb = crop_to_points(aabb, scene.points.xyz, cfg.crop_margin)
     train = scene.split_cameras("train")
     frame_fn, tsdf_cams = None, None
     if cfg.method == "tsdf":
         tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device)
-    depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from == "depth"
-    points = surface_points(model, train, views.chunk, device) if depth_level else None
+    depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from != "opacity"
+    points, origins = surface_points(model, train, views.chunk, device) if depth_level else (None, None)
     with torch.no_grad():
-        return build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn,
-                            frame_fn=frame_fn, cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points)
+        return build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
+                            cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins)
+
+
+def crop_to_points(aabb, xyz, margin: float, quantile: float = 0.02):
+    """``aabb`` intersected with the robust extent of the sparse points (``quantile`` to ``1 - quantile``
+    per axis, grown by ``margin`` times that extent); ``aabb`` itself when they do not overlap."""
+    import torch
+
+    xyz = xyz.double().cpu()
+    lo, hi = torch.quantile(xyz, quantile, dim=0), torch.quantile(xyz, 1 - quantile, dim=0)
+    pad = margin * (hi - lo)
+    box = torch.stack([torch.maximum(aabb[0].double(), lo - pad), torch.minimum(aabb[1].double(), hi + pad)]).float()
+    return box if bool((box[1] > box[0]).all()) else aabb
 
 
 def box_and_occupancy(model, scene_aabb):
@@ -55,7 +72,7 @@ def box_and_occupancy(model, scene_aabb):
 
 
 def surface_points(model, train, chunk: int, device: str, views: int = 8, size: int = 128):
-    """Where the rays of a few rendered training views end (opaque pixels only), world frame."""
+    """Where the rays of a few rendered training views end (opaque pixels only, expected depth) and their origins, world frame."""
     import torch
 
     from nerfpipe.rays import camera_rays
@@ -63,12 +80,13 @@ def surface_points(model, train, chunk: int, device: str, views: int = 8, size: 
 
     idx = torch.linspace(0, len(train) - 1, min(views, len(train))).round().long().unique()
     cams = resize_each(train[idx], size / torch.maximum(train[idx].width, train[idx].height).double())
-    pts = []
+    pts, origins = [], []
     for i, view in enumerate(render_cameras(model, cams.to(device), chunk)):
         rays = camera_rays(cams, i)
         opaque = view.acc.cpu() > 0.9
         pts.append(rays.points_at(view.surface_depth.cpu())[opaque])
-    return torch.cat(pts)
+        origins.append(rays.origins[opaque])
+    return torch.cat(pts), torch.cat(origins)
 
 
 def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str):
