@@ -9,6 +9,7 @@ import torch.nn.functional as F
 
 from data_adapters import load
 from nerfpipe.cli import main
+from nerfpipe.errors import NerfpipeError
 from nerfpipe.fields.vanilla import VanillaFieldConfig
 from nerfpipe.models.vanilla import VanillaConfig
 from nerfpipe.trainer import Trainer, TrainerConfig
@@ -147,3 +148,16 @@ def test_stale_optimizer_state_of_resized_parameters_is_dropped():
     assert opt.state[resized] == {} and opt.state[keep]["exp_avg"].shape == (3,)
     opt.step()  # would raise on the shape mismatch without the drop
     assert opt.state[resized]["exp_avg"].shape == (6,)
+
+
+def test_cpu_clock_budget_counts_process_seconds(tiny_scene, tmp_path, monkeypatch):
+    import time as time_module
+
+    cpu = iter(range(0, 10_000, 3))  # every reading of the CPU clock advances it by 3 s
+    monkeypatch.setattr(time_module, "process_time", lambda: float(next(cpu)))
+    t = Trainer(tcfg(iters=100, time_budget=10.0, clock="cpu", eval_every=0), tiny_scene, "vanilla", MODEL, tmp_path)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    t.train()
+    assert t.step == 4 and t.train_seconds == 12.0  # 3 CPU seconds per step, stopped once 10 were spent
+    with pytest.raises(NerfpipeError, match="unknown clock"):
+        Trainer(tcfg(clock="sundial"), tiny_scene, "vanilla", MODEL, tmp_path / "x").clock()
