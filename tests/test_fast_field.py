@@ -172,3 +172,33 @@ def test_resume_keeps_the_learning_rate_schedule(tiny_scene, tmp_path):
     assert lrs[0] == pytest.approx(model.grid_lr * max(model.lr_min_factor, 0.1 ** (9 / 4)))
     a, b = straight.model.state_dict(), resumed.model.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)  # bit-identical continuation across the box tightening
+
+
+def test_briefly_trained_model_renders_the_same_with_early_termination(tiny_scene, tmp_path):
+    """The density pass in rounds (early termination) keeps the full pass's samples on a trained field."""
+    from nerfpipe.rays import camera_rays
+    from nerfpipe.render import render_cameras
+
+    model_cfg = FastConfig(levels=(12, 24), feature_channels=2, hidden=16, step_ratio=1.0, tighten_step=8, min_transmittance=0.3,
+                           occupancy=OccupancyGridConfig(resolution=24, warmup_steps=2, update_every=2))  # rays terminate soon
+    cfg = TrainerConfig(iters=12, rays_per_step=512, eval_every=0, video_frames=0, checkpoint_every=0, seed=0, write_outputs=False)
+    trainer = Trainer(cfg, tiny_scene, "fast", model_cfg, tmp_path)
+    for _ in range(cfg.iters):
+        trainer.train_step()
+    model, cams = trainer.model.eval(), tiny_scene.cameras[:3]
+    evaluated, samples, views = {}, {}, {}
+    for early in (True, False):
+        model.cfg.early_termination = early
+        with torch.no_grad():
+            counted = []
+            model.field.density = lambda p, f=model.field.density: counted.append(len(p)) or f(p)  # noqa: E731
+            samples[early], _ = model._samples(camera_rays(cams, 0).reshape(-1))
+            del model.field.density
+        evaluated[early] = sum(counted)
+        views[early] = render_cameras(model, cams)
+    assert len(samples[True]) > 0 and evaluated[True] < evaluated[False]  # some rays did terminate
+    for key in ("ray_indices", "t_starts", "t_ends"):
+        assert torch.equal(getattr(samples[True], key), getattr(samples[False], key))
+    for a, b in zip(views[True], views[False]):
+        for key in ("rgb", "depth", "acc"):
+            torch.testing.assert_close(getattr(a, key), getattr(b, key), rtol=1e-6, atol=1e-6)

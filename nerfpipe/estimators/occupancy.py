@@ -4,12 +4,16 @@ The grid keeps an exponential moving average of the density at each cell, refres
 ``density_fn`` during training, and a binary mask ``density * step > threshold``. Rays are
 marched with a fixed step inside the box; samples in empty cells are dropped and the rest are
 packed (see :mod:`nerfpipe.functional.packed`), so the cost follows the occupied space.
+:meth:`OccupancyGrid.march_until_opaque` also evaluates a density on the way, in rounds of a few
+samples per ray, and stops each ray once it is opaque (early ray termination).
 
 Glossary:
     aabb        ``[2, 3]`` scene box ``[min, max]``
     cell        one of ``res^3`` boxes the aabb is cut into; cell ``(i, j, k)`` is row ``(i*res + j)*res + k``
     step_size   distance between consecutive samples along a ray (world units)
     packed      samples of all rays back to back, ``ray_indices`` giving each sample's ray
+    round       one pass of marching + density over the rays still alive (a few samples each)
+    optical depth  sum of ``sigma * delta`` in front of a sample; transmittance is ``exp(-depth)``
 """
 
 from dataclasses import dataclass
@@ -18,6 +22,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from nerfpipe.functional.volrend import MAX_THICKNESS
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
 
@@ -58,6 +63,23 @@ class PackedSamples:
     def points(self, origins: Float[Tensor, "num_rays 3"], directions: Float[Tensor, "num_rays 3"]) -> Float[Tensor, "num_samples 3"]:
         t = 0.5 * (self.t_starts + self.t_ends)
         return origins[self.ray_indices] + t[:, None] * directions[self.ray_indices]
+
+
+@dataclass
+class _Limits:
+    """Where the rays of one :meth:`OccupancyGrid.march` call start and end, and their step."""
+
+    origins: Tensor
+    directions: Tensor
+    t0: Tensor
+    t1: Tensor
+    offset: Tensor
+    step_size: float
+    max_steps: int
+
+    def t_start(self, rays: Tensor, k: Tensor) -> Tensor:
+        """Start of interval ``k`` of each ray (as :meth:`OccupancyGrid._intervals` computes it)."""
+        return self.t0[rays] + (k.to(self.t0.dtype) + self.offset[rays] - 1.0).clamp(min=0) * self.step_size
 
 
 def ray_aabb_intersect(
@@ -132,6 +154,15 @@ class OccupancyGrid(nn.Module):
         cell = (self.aabb[1] - self.aabb[0]) / r
         return torch.stack([self.aabb[0] + torch.stack(lo) * cell, self.aabb[0] + torch.stack(hi) * cell])
 
+    def _limits(self, origins, directions, near, far, step_size, jitter, aabb) -> "_Limits":
+        box = self.aabb if aabb is None else aabb
+        t0, t1 = ray_aabb_intersect(origins, directions, box)
+        t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
+        n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
+        max_steps = int(n_steps.max()) if n_steps.numel() else 0
+        offset = torch.rand_like(t0) if jitter else torch.zeros_like(t0)
+        return _Limits(origins, directions, t0, t1, offset, step_size, max_steps)
+
     @torch.no_grad()
     def march(
         self,
@@ -153,25 +184,163 @@ class OccupancyGrid(nn.Module):
             jitter: shift each ray's intervals by a random fraction of a step (training).
             aabb: march only inside this box (default: the grid's box), e.g. :meth:`occupied_aabb`.
         """
-        box = self.aabb if aabb is None else aabb
-        t0, t1 = ray_aabb_intersect(origins, directions, box)
-        t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
-        n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
-        max_steps = int(n_steps.max()) if n_steps.numel() else 0
-        offset = torch.rand_like(t0) if jitter else torch.zeros_like(t0)
-        parts, rows = [], max(1, chunk_samples // max(max_steps, 1))
+        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb)
+        k = torch.arange(lim.max_steps + 1, device=origins.device, dtype=origins.dtype)[None, :]
+        parts, rows = [], max(1, chunk_samples // max(lim.max_steps, 1))
         for s in range(0, origins.shape[0], rows):
-            parts.append(self._march_rows(origins, directions, t0, t1, offset, step_size, max_steps, s, s + rows))
+            rays = torch.arange(s, min(s + rows, origins.shape[0]), device=origins.device)
+            valid, t_starts, t_ends = self._intervals(lim, rays, k)
+            ray, step = valid.nonzero(as_tuple=True)
+            parts.append((rays[ray], t_starts[ray, step], t_ends[ray, step]))
+        if not parts:
+            return PackedSamples(origins.new_zeros(0, dtype=torch.long), origins.new_zeros(0), origins.new_zeros(0), 0)
         return PackedSamples(*(torch.cat(p) for p in zip(*parts)), num_rays=origins.shape[0])
 
-    def _march_rows(self, origins, directions, t0, t1, offset, step_size, max_steps, start, stop):
-        sl = slice(start, stop)
-        k = torch.arange(max_steps + 1, device=origins.device, dtype=origins.dtype)
-        t_starts = t0[sl, None] + (k[None, :] + offset[sl, None] - 1.0).clamp(min=0) * step_size
-        t_ends = (t0[sl, None] + (k[None, :] + offset[sl, None]) * step_size).clamp(max=t1[sl, None])
+    def _intervals(self, lim: _Limits, rays: Int[Tensor, "num_rays"], k: Float[Tensor, "rows steps"]):
+        """Intervals number ``k`` of rays ``rays`` (``[R, S]`` each) and which are in occupied cells."""
+        t0, offset = lim.t0[rays, None], lim.offset[rays, None]
+        t_starts = t0 + (k + offset - 1.0).clamp(min=0) * lim.step_size
+        t_ends = (t0 + (k + offset) * lim.step_size).clamp(max=lim.t1[rays, None])
         mids = 0.5 * (t_starts + t_ends)
         valid = t_ends > t_starts
-        pts = origins[sl, None, :] + mids[..., None] * directions[sl, None, :]
+        pts = lim.origins[rays, None, :] + mids[..., None] * lim.directions[rays, None, :]
         valid &= self.occupied(pts.reshape(-1, 3)).view(valid.shape)
-        ray, step = valid.nonzero(as_tuple=True)
-        return ray + start, t_starts[ray, step], t_ends[ray, step]
+        return valid, t_starts, t_ends
+
+    @torch.no_grad()
+    def march_until_opaque(
+        self,
+        origins: Float[Tensor, "num_rays 3"],
+        directions: Float[Tensor, "num_rays 3"],
+        near: float,
+        far: float,
+        step_size: float,
+        sigma_fn: "Callable[[PackedSamples], Tensor]",
+        min_transmittance: float,
+        min_alpha: "float | None" = None,
+        jitter: bool = False,
+        aabb: "Float[Tensor, '2 3'] | None" = None,
+        rounds: "Rounds | None" = None,
+    ) -> "tuple[PackedSamples, Float[Tensor, 'num_samples']]":
+        """:meth:`march` then :func:`~nerfpipe.functional.packed.prune_mask`, with early ray termination.
+
+        Rays are marched and their densities evaluated in rounds of a few samples per ray; a ray
+        stops once its transmittance has fallen to ``min_transmittance``, so samples behind an
+        opaque surface are never marched nor evaluated (instant-ngp's compacted rounds).
+
+        Args:
+            origins, directions, near, far, step_size, jitter, aabb: as for :meth:`march`.
+            sigma_fn: density of packed samples (``[num_samples]``), evaluated without gradients.
+            min_transmittance: keep samples whose transmittance exceeds this.
+            min_alpha: keep only samples more opaque than this (``None``: no alpha test).
+            rounds: samples per ray and round (default :class:`Rounds`).
+
+        Returns:
+            The kept samples, as ``prune_mask`` selects them from :meth:`march` (equal up to the
+            order of floating-point sums), and their densities.
+        """
+        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb)
+        state = _RayState.start(lim)
+        rounds = rounds or Rounds()
+        kept, n = [], 0
+        while len(state.rays):
+            k, s = rounds.samples(n), rounds.steps(n)
+            rows = max(1, rounds.chunk_samples // s)
+            parts = [self._round(lim, state.slice(i, i + rows), sigma_fn, k, s, min_transmittance, min_alpha)
+                     for i in range(0, len(state.rays), rows)]
+            kept += [p[0] for p in parts]
+            state = _RayState.cat([p[1] for p in parts])
+            n += 1
+        return _sorted_by_ray(kept, origins)
+
+    def _round(self, lim, state, sigma_fn, k_max, steps, min_transmittance, min_alpha):
+        """March ``steps`` intervals of the rays in ``state``, evaluate the first ``k_max`` occupied ones."""
+        k = state.next_step[:, None] + torch.arange(steps, device=state.rays.device)
+        valid, t_starts, t_ends = self._intervals(lim, state.rays, k.to(lim.t0.dtype))
+        valid &= k <= lim.max_steps
+        rank = valid.cumsum(dim=1)
+        row, col = (valid & (rank <= k_max)).nonzero(as_tuple=True)
+        samples = PackedSamples(state.rays[row], t_starts[row, col], t_ends[row, col], lim.origins.shape[0])
+        sigma = sigma_fn(samples) if len(samples) else t_starts.new_zeros(0)
+        trans, optical_depth = _transmittance(sigma, samples, row, col, state.optical_depth, valid.shape)
+        keep = trans > min_transmittance
+        if min_alpha is not None:
+            keep &= -torch.expm1(-sigma * (samples.t_ends - samples.t_starts)) > min_alpha
+        n_valid = rank[:, -1]
+        advance = torch.where(n_valid > k_max, (rank < k_max).sum(dim=1) + 1, steps)
+        state = _RayState(state.rays, state.next_step + advance, optical_depth)
+        alive = torch.exp(-optical_depth.to(trans.dtype)) > min_transmittance
+        alive &= (state.next_step <= lim.max_steps) & (lim.t_start(state.rays, state.next_step) < lim.t1[state.rays])
+        return (samples.select(keep), sigma[keep]), state.select(alive)
+
+
+@dataclass
+class Rounds:
+    """How many samples per ray :meth:`OccupancyGrid.march_until_opaque` evaluates in each round."""
+
+    first: int = 8
+    """Occupied samples per ray evaluated in the first round."""
+    most: int = 32
+    """The number doubles each round up to this."""
+    steps_per_sample: int = 4
+    """Intervals marched per round: this many per sample (empty ones are skipped)."""
+    chunk_samples: int = 1 << 21
+    """Intervals marched at once (bounds memory)."""
+
+    def samples(self, n: int) -> int:
+        return min(self.most, self.first << min(n, 30))
+
+    def steps(self, n: int) -> int:
+        return self.samples(n) * self.steps_per_sample
+
+
+@dataclass
+class _RayState:
+    """Rays still marching: their index, next interval number and optical depth so far (float64)."""
+
+    rays: Tensor
+    next_step: Tensor
+    optical_depth: Tensor
+
+    @staticmethod
+    def start(lim: _Limits) -> "_RayState":
+        rays = (lim.t0 < lim.t1).nonzero()[:, 0]
+        zeros = torch.zeros_like(rays)
+        return _RayState(rays, zeros, torch.zeros(len(rays), dtype=torch.float64, device=rays.device))
+
+    @staticmethod
+    def cat(states: "list[_RayState]") -> "_RayState":
+        return _RayState(*(torch.cat(t) for t in zip(*((s.rays, s.next_step, s.optical_depth) for s in states))))
+
+    def slice(self, start: int, stop: int) -> "_RayState":
+        return _RayState(self.rays[start:stop], self.next_step[start:stop], self.optical_depth[start:stop])
+
+    def select(self, keep: Tensor) -> "_RayState":
+        return _RayState(self.rays[keep], self.next_step[keep], self.optical_depth[keep])
+
+
+def _transmittance(sigma, samples: PackedSamples, row, col, optical_depth, shape):
+    """Transmittance in front of each evaluated sample and each row's optical depth after the round.
+
+    As in :func:`~nerfpipe.functional.packed.render_weights_packed`: clamped thickness in the
+    density's precision, sums in float64, transmittance ``exp(-depth)`` in the density's precision.
+    """
+    ct = torch.float64 if sigma.dtype == torch.float64 else torch.float32
+    thickness = (sigma.to(ct) * (samples.t_ends - samples.t_starts).to(ct)).clamp(0.0, MAX_THICKNESS).double()
+    dense = torch.zeros(shape, dtype=torch.float64, device=sigma.device)
+    dense[row, col] = thickness
+    cum = torch.cumsum(dense, dim=1)
+    before = optical_depth[row] + (cum[row, col] - thickness)
+    after = optical_depth + cum[:, -1]
+    return torch.exp(-before.to(ct)), after
+
+
+def _sorted_by_ray(kept: list, origins: Tensor) -> "tuple[PackedSamples, Tensor]":
+    """Concatenate the rounds' samples and order them by ray (stable: each ray's rounds are in order)."""
+    num_rays = origins.shape[0]
+    if not kept:
+        return PackedSamples(torch.zeros(0, dtype=torch.long, device=origins.device), origins.new_zeros(0), origins.new_zeros(0), num_rays), origins.new_zeros(0)
+    rays = torch.cat([p.ray_indices for p, _ in kept])
+    order = torch.sort(rays, stable=True).indices
+    samples = PackedSamples(rays[order], torch.cat([p.t_starts for p, _ in kept])[order], torch.cat([p.t_ends for p, _ in kept])[order], num_rays)
+    return samples, torch.cat([s for _, s in kept])[order]

@@ -18,7 +18,7 @@ ray's first sample, so long packed batches keep full float32 accuracy per ray.
 import torch
 
 from nerfpipe.functional.volrend import MAX_THICKNESS
-from nerfpipe.typing import Float, Int, Tensor
+from nerfpipe.typing import Bool, Float, Int, Tensor
 
 
 def segment_starts(ray_indices: Int[Tensor, "num_samples"]) -> Int[Tensor, "num_samples"]:
@@ -69,6 +69,26 @@ def render_weights_packed(
     alpha = -torch.expm1(-thickness)
     trans = torch.exp(-exclusive_segment_cumsum(thickness, ray_indices))
     return (trans * alpha).to(sigmas.dtype), trans.to(sigmas.dtype)
+
+
+def prune_mask(
+    sigmas: Float[Tensor, "num_samples"],
+    deltas: Float[Tensor, "num_samples"],
+    ray_indices: Int[Tensor, "num_samples"],
+    min_transmittance: float,
+    min_alpha: "float | None" = None,
+) -> Bool[Tensor, "num_samples"]:
+    """Samples worth shading: the ray still reaches them (transmittance above ``min_transmittance``)
+    and, unless ``min_alpha`` is ``None``, they are more opaque than ``min_alpha``.
+
+    The full-pass reference of early ray termination (every sample's density is needed); see
+    :meth:`~nerfpipe.estimators.occupancy.OccupancyGrid.march_until_opaque` for the fast path.
+    """
+    _, trans = render_weights_packed(sigmas, deltas, ray_indices)
+    keep = trans > min_transmittance
+    if min_alpha is not None:
+        keep &= -torch.expm1(-sigmas * deltas) > min_alpha
+    return keep
 
 
 def accumulate_packed(

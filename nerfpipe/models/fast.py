@@ -3,7 +3,8 @@
 Only what the scene needs is modelled and evaluated: the field lives in the scene box (tightened
 to the occupied cells once training has found them), rays are marched only through occupied
 cells with a step tied to the grid resolution, a cheap density-only pass finds where each ray's
-transmittance has run out, and the colour pass runs on the samples that matter (packed, no padding).
+transmittance has run out (in rounds of a few samples per ray, so nothing behind an opaque surface
+is marched or evaluated), and the colour pass runs on the samples that matter (packed, no padding).
 
 Glossary:
     step_size   distance between samples along rays: ``step_ratio`` of the finest voxel
@@ -19,7 +20,7 @@ import torch
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
-from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, render_weights_packed
+from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, prune_mask, render_weights_packed
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
 from nerfpipe.rays import RayBundle
 from nerfpipe.typing import Float, Tensor
@@ -78,6 +79,9 @@ class FastConfig:
     """Early ray termination: samples behind this transmittance are not shaded."""
     min_alpha: float = 1e-4
     """Samples less opaque than this are not shaded (after warm-up)."""
+    early_termination: bool = True
+    """Evaluate the density-only pass in rounds and stop each ray once opaque (False: evaluate every
+    marched sample; the same samples are kept either way)."""
     learned_background: "bool | None" = None
     """Learn the colour behind the box per viewing direction (default: for scenes without alpha, where
     the photographs show more than the box, e.g. COLMAP captures); otherwise the trainer's background."""
@@ -150,18 +154,33 @@ class FastModel(Model):
     def rgb_fn(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
         return self.field.rgb(points, directions)
 
+    def _min_alpha(self) -> "float | None":
+        """The alpha test is off while the occupancy grid warms up (every cell is occupied then)."""
+        return self.cfg.min_alpha if self._step > self.cfg.occupancy.warmup_steps or not self.training else None
+
     @torch.no_grad()
-    def _prune(self, samples: PackedSamples, rays: RayBundle) -> PackedSamples:
-        """Density-only pass: keep samples the ray still reaches that are not transparent."""
+    def _prune(self, samples: PackedSamples, rays: RayBundle) -> "tuple[PackedSamples, Tensor]":
+        """Full density-only pass (the reference of :meth:`_samples`): densities of every marched
+        sample, then keep those the ray still reaches that are not transparent."""
         if len(samples) == 0:
-            return samples
+            return samples, samples.t_starts
         sigma = torch.cat([self.field.density(p) for p in samples.points(rays.origins, rays.directions).split(1 << 20)])
-        deltas = samples.t_ends - samples.t_starts
-        _, trans = render_weights_packed(sigma, deltas, samples.ray_indices)
-        keep = trans > self.cfg.min_transmittance
-        if self._step > self.cfg.occupancy.warmup_steps or not self.training:
-            keep &= -torch.expm1(-sigma * deltas) > self.cfg.min_alpha
-        return samples.select(keep)
+        keep = prune_mask(sigma, samples.t_ends - samples.t_starts, samples.ray_indices, self.cfg.min_transmittance, self._min_alpha())
+        return samples.select(keep), sigma[keep]
+
+    def _samples(self, rays: RayBundle) -> "tuple[PackedSamples, Tensor]":
+        """The samples to shade and their densities (no gradients): marched through occupied cells,
+        densities evaluated in rounds that stop at opaque rays (or all at once, ``early_termination=False``)."""
+        args = (rays.origins, rays.directions, self.info.near, self.info.far, self._march_step())
+        if not self.cfg.early_termination:
+            return self._prune(self.grid.march(*args, jitter=self.training, aabb=self.march_box), rays)
+
+        def sigma_fn(samples: PackedSamples) -> Tensor:
+            return self.field.density(samples.points(rays.origins, rays.directions))
+
+        return self.grid.march_until_opaque(
+            *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box
+        )
 
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
         shape = rays.shape
@@ -170,14 +189,11 @@ class FastModel(Model):
         dir_code = direction_encoding(flat.directions)
         if self.background is not None:
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
-        samples = self.grid.march(
-            flat.origins, flat.directions, self.info.near, self.info.far, self._march_step(),
-            jitter=self.training, aabb=self.march_box,
-        )
-        samples = self._prune(samples, flat)
+        samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
-        sigma = self.field.density_from_corners(corners)
+        if torch.is_grad_enabled():  # the pruning pass ran without gradients: evaluate again with them
+            sigma = self.field.density_from_corners(corners)
         rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
