@@ -4,7 +4,9 @@ import os
 from pathlib import Path
 
 import pytest
-import torch
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as nerfpipe/__init__.py: no spinning OpenMP waits on shared cores
+import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_ENV = "NERFPIPE_DATA"
