@@ -9,8 +9,8 @@ Layers (lower never imports upper):
 
 # pycolmap's wheel exports its own zlib symbols; when it is imported before Python's zlib, later
 # PNG writes abort the process. Loading zlib first makes the order safe for every nerfpipe user.
-import zlib  # noqa: F401  (import-order guard, see above)
 import os
+import zlib  # noqa: F401  (import-order guard, see above)
 
 # OpenMP threads that spin while waiting (GNU OpenMP's default) make torch 5-20x slower on a machine
 # whose cores are shared with other processes (measured: a 4096-ray training step on 2 threads at load

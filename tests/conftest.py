@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as nerfpipe/__init__.py: no spinning OpenMP waits on shared cores
-import torch  # noqa: E402
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_ENV = "NERFPIPE_DATA"
