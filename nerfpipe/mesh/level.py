@@ -38,7 +38,7 @@ from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.extract import Volume, _marching_cubes, auto_level
 from nerfpipe.typing import Float, Tensor
 
-MAX_POINTS = 50_000
+MAX_POINTS = 20_000
 """Surface points used for scoring (an even subsample of more)."""
 
 
@@ -69,9 +69,9 @@ def densities_at(volume: Volume, points: Float[Tensor, "num_points 3"]) -> Float
     """Trilinear interpolation of the sampled densities at world points (0 outside the box)."""
     g = volume.grid
     shape = torch.tensor(g.shape, dtype=torch.float64)
-    idx = (points.double() - torch.from_numpy(g.origin)) / g.spacing  # fractional sample index per axis
-    norm = 2.0 * idx / (shape - 1) - 1.0  # align_corners=True: -1 and 1 are the first and last samples
-    coords = norm.flip(-1).float()[None, :, None, None]  # grid_sample wants (W, H, D) = (z, y, x)
+    origin = torch.from_numpy(g.origin).float()
+    scale = 2.0 / (g.spacing * (shape.float() - 1))  # align_corners=True: -1 and 1 are the first and last samples
+    coords = ((points.float() - origin) * scale - 1.0)[:, [2, 1, 0]][None, :, None, None]  # grid_sample wants (z, y, x)
     out = torch.nn.functional.grid_sample(volume.values[None, None], coords, mode="bilinear", padding_mode="zeros", align_corners=True)
     return out.reshape(-1)
 
@@ -88,16 +88,28 @@ def median_depth_points(
     step = 0.5 * volume.grid.spacing
     out = []
     for o, p in zip(origins.float().split(chunk), points.float().split(chunk)):
-        ray = p - o
-        t = torch.arange(int(beyond / step * float(ray.norm(dim=-1).max())) + 2) * step  # distance along the ray
-        d = torch.nn.functional.normalize(ray, dim=-1)
-        sigma = densities_at(volume, (o[:, None] + t[None, :, None] * d[:, None]).reshape(-1, 3)).reshape(len(o), -1)
-        sigma = sigma * (t[None, :] <= beyond * ray.norm(dim=-1, keepdim=True))
-        opacity = 1 - torch.exp(-torch.cumsum(sigma * step, dim=1))
+        length = (p - o).norm(dim=-1, keepdim=True)
+        d = (p - o) / length.clamp(min=1e-12)
+        end = beyond * length
+        start = _box_entry(volume, o, d).clamp(max=end)  # no density before the ray enters the volume
+        k = torch.arange(int(float((end - start).max()) / step) + 2, dtype=o.dtype)
+        t = start + k[None, :] * step  # distance along each ray [R, S]
+        sigma = densities_at(volume, (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(t.shape)
+        opacity = 1 - torch.exp(-torch.cumsum(sigma * (t <= end) * step, dim=1))
         half = opacity >= 0.5
-        first = half.float().argmax(dim=1)
-        out.append((o + t[first][:, None] * d)[half[:, -1]])
+        first = half.float().argmax(dim=1, keepdim=True)
+        out.append((o + t.gather(1, first) * d)[half[:, -1]])
     return torch.cat(out) if out else points[:0]
+
+
+def _box_entry(volume: Volume, origins: Float[Tensor, "R 3"], directions: Float[Tensor, "R 3"]) -> Float[Tensor, "R 1"]:
+    """Distance along each ray to where it enters the volume's box (0 from inside; beyond it when it misses)."""
+    g = volume.grid
+    lo = torch.from_numpy(g.origin).float()
+    hi = lo + g.spacing * (torch.tensor(g.shape, dtype=torch.float32) - 1)
+    safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+    t_lo, t_hi = (lo - origins) / safe, (hi - origins) / safe
+    return torch.minimum(t_lo, t_hi).amax(dim=-1, keepdim=True).clamp(min=0.0)
 
 
 def agreement_score(volume: Volume, level: float, points: Float[np.ndarray, "num_points 3"], clamp: float, tree=None) -> float:
