@@ -51,6 +51,10 @@ def eval_size(width: int, height: int, scale: float, max_size: "int | None") -> 
     return max(1, round(width * s)), max(1, round(height * s))
 
 
+VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
+"""Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
+
+
 def validate(trainer, num_views: int) -> "tuple[float, float]":
     """Mean (PSNR, SSIM) over ``num_views`` val views (0: all); logs it and keeps a snapshot of view 0."""
     scene, cfg = trainer.scene, trainer.cfg
@@ -115,4 +119,5 @@ def finish(trainer) -> dict:
         metrics["video"] = write_sequence(views, out, "orbit", depth=True)
         metrics["depth_colormap"] = metrics["video"]["depth_mapping"]
     write_json(out / "metrics.json", metrics)
+    write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})
     return metrics

@@ -299,6 +299,13 @@ def bench_table(rows: "list[dict]") -> str:
     return table([esc(h) for _, h in BENCH_COLUMNS], cells, "grid num")
 
 
+def history_table(rows: "list[dict]") -> str:
+    """Validation PSNR / SSIM of one run at each validation, against training seconds."""
+    cols = [("step", "iteration"), ("train_seconds", "training s"), ("val_psnr", "val PSNR (dB)"), ("val_ssim", "SSIM"), ("views", "views")]
+    cells = [[esc(fmt(r.get(k))) for k, _ in cols] for r in rows if isinstance(r, dict)]
+    return table([esc(h) for _, h in cols], cells, "grid num")
+
+
 def bench_section(page: Page) -> str:
     root = Path(page.config.bench_dir) if page.config.bench_dir else page.run_dir / "bench"
     doc = read_json(p) if (p := page.find(BENCH_JSON, root)) is not None else None
@@ -307,6 +314,9 @@ def bench_section(page: Page) -> str:
         body = f"<p>scene: {esc(doc.get('scene', '?'))}; best val PSNR per budget in bold</p>" + bench_table(rows)
     elif (md := page.find(BENCH_MD, root)) is not None:
         body = f"<pre>{esc(md.read_text())}</pre>"
+    elif (hist := page.find(("train/history.json", "history.json"))) is not None and (rows := (read_json(hist) or {}).get("val")):
+        body = ("<p>this run's validations against training seconds (run <code>nerfpipe bench PATH</code> "
+                "and put its folder in <code>bench/</code> to compare presets)</p>" + history_table(rows))
     else:
         page.missing.append(f"speed-against-error table ({root.name}/table.json)")
         body = not_produced("speed-against-error table (nerfpipe bench: table.json)")
@@ -316,7 +326,8 @@ def bench_section(page: Page) -> str:
 
 MESH_KEYS = ["method", "faces", "vertices", "faces_simplified", "hausdorff_max", "hausdorff_mean", "level", "voxel_size",
              "unseen_faces_removed", "floater_faces_removed", "seconds_extract", "seconds_clean_color", "seconds_simplify"]  # fmt: skip
-MESH_EVAL_KEYS = ["fscore", "precision", "recall", "chamfer_l1", "accuracy", "completeness", "normal_consistency", "threshold", "reference"]
+MESH_EVAL_KEYS = ["fscore", "precision", "recall", "chamfer_l1", "accuracy", "completeness", "normal_consistency", "threshold", "reference",
+                  "points_within_threshold", "points_all_within_threshold", "points_excluded", "points_threshold", "mesh_area_near_points"]  # fmt: skip
 
 
 def mesh_section(page: Page, mesh: "dict | None", evaluation: "dict | None") -> str:

@@ -225,3 +225,15 @@ def test_odd_content_is_reported_not_fatal(full_run):
     assert "scene summary (scene.json: unreadable)" in page
     assert len(_img_sources(page)) == len(IMAGES)  # the pictures are still all there
     assert "<td>p</td>" in page and "n/a" in page
+
+
+def test_without_a_bench_the_runs_own_validations_are_the_speed_table(tmp_path):
+    run = tmp_path / "run"
+    _write_json(run / "scene.json", {"input": "/data/x.npz", "num_cameras": 3})
+    rows = [{"step": 0, "train_seconds": 0.0, "val_psnr": 8.5, "val_ssim": 0.1, "views": 1},
+            {"step": 300, "train_seconds": 155.25, "val_psnr": 28.75, "val_ssim": 0.95, "views": 10}]
+    _write_json(run / "train" / "history.json", {"val": rows})
+    page = _run_report(run)
+    section = page[page.index('id="bench"') : page.index('id="missing"')]
+    assert "this run's validations" in section and "28.75" in section and "155.2" in section
+    assert "speed-against-error table" not in page[page.index('id="missing"') :]
