@@ -117,7 +117,7 @@ def test_bad_input_fails_with_a_clear_message(field, points, message):
 
 
 def test_pipeline_records_the_candidates_and_needs_points():
-    cfg = MeshConfig(resolution=RES, remove_unseen=False)
+    cfg = MeshConfig(resolution=RES, remove_unseen=False, level_from="agreement")
     out = build_meshes(cfg, BOX, density_fn=soft_sphere, surface_points=sphere_points(500))
     f = out.figures
     assert f["level_rule"] == "agreement" and f["level"] == pytest.approx(50.0, rel=0.1)

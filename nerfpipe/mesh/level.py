@@ -77,7 +77,8 @@ def densities_at(volume: Volume, points: Float[Tensor, "num_points 3"]) -> Float
 
 
 def median_depth_points(
-    volume: Volume, origins: Float[Tensor, "num_points 3"], points: Float[Tensor, "num_points 3"], beyond: float = 1.3, chunk: int = 2048
+    volume: Volume, origins: Float[Tensor, "num_points 3"], points: Float[Tensor, "num_points 3"], beyond: float = 1.3, chunk: int = 2048,
+    opacity: float = 0.5,
 ) -> Float[Tensor, "num_kept 3"]:
     """Where the rays ``origins -> points`` become half opaque in the sampled volume (median depth).
 
@@ -95,10 +96,10 @@ def median_depth_points(
         k = torch.arange(int(float((end - start).max()) / step) + 2, dtype=o.dtype)
         t = start + k[None, :] * step  # distance along each ray [R, S]
         sigma = densities_at(volume, (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(t.shape)
-        opacity = 1 - torch.exp(-torch.cumsum(sigma * (t <= end) * step, dim=1))
-        half = opacity >= 0.5
-        first = half.float().argmax(dim=1, keepdim=True)
-        out.append((o + t.gather(1, first) * d)[half[:, -1]])
+        accumulated = 1 - torch.exp(-torch.cumsum(sigma * (t <= end) * step, dim=1))
+        hit = accumulated >= opacity
+        first = hit.float().argmax(dim=1, keepdim=True)
+        out.append((o + t.gather(1, first) * d)[hit[:, -1]])
     return torch.cat(out) if out else points[:0]
 
 
