@@ -145,3 +145,13 @@ def test_median_depth_points_are_where_rays_become_half_opaque():
     assert (pts[:, 0] - (0.2 + math.log(2) / s)).abs().max() < volume.grid.spacing
     faint = median_depth_points(volume, origins, torch.cat([torch.full((50, 1), 0.21), yz], 1), beyond=1.0)
     assert len(faint) == 0  # never half opaque before the end: dropped
+
+
+def test_default_level_is_five_percent_of_a_voxel_opaque():
+    import math
+
+    out = build_meshes(MeshConfig(resolution=33, remove_unseen=False), BOX, density_fn=soft_sphere)
+    f = out.figures
+    assert f["level_rule"] == "opacity" and f["level_opacity"] == 0.05
+    assert f["level"] == pytest.approx(-math.log(0.95) / f["voxel_size"])
+    assert 1.0 - math.exp(-f["level"] * f["voxel_size"]) == pytest.approx(0.05)

@@ -33,7 +33,7 @@ def world_from_input() -> Similarity:
 def test_marching_cubes_post_stage_writes_input_frame_meshes(tmp_path):
     import trimesh
 
-    cfg = MeshConfig(resolution=64, faces=2000, remove_unseen=False, min_component=0.1, level_from="opacity")
+    cfg = MeshConfig(resolution=64, faces=2000, remove_unseen=False, min_component=0.1, level_from="opacity", level_opacity=0.5)
     out = build_meshes(cfg, BOX, density_fn=blob, rgb_fn=rgb)
     assert out.figures["floater_faces_removed"] > 0 and out.full.to_trimesh().body_count == 1
     assert out.simplified.num_faces <= 2000 and 0 < out.figures["hausdorff_max"] < 0.05

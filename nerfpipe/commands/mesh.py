@@ -13,7 +13,7 @@ def mesh(
     resolution: int = 256,
     faces: "int | None" = None,
     level: "float | None" = None,
-    level_from: Literal["agreement", "quantile", "opacity"] = "quantile",
+    level_from: Literal["agreement", "quantile", "opacity"] = "opacity",
     min_component: float = 0.05,
     remove_unseen: bool = True,
     close_holes: int = 0,
@@ -36,10 +36,10 @@ def mesh(
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).
         level: density iso-level for mc (default: chosen by --level-from).
-        level_from: automatic level: quantile (the default: the 0.1 quantile of the density where the rays
-            of 8 rendered training views end), agreement (of log-spaced candidate levels, the one whose
-            surface is closest to those points; candidates and scores go to mesh.json) or
-            opacity (ln 2 / voxel size, one voxel half opaque).
+        level_from: automatic level: opacity (the default: the density at which a ray crossing one voxel
+            is 5% blocked), quantile (the 0.1 quantile of the density where the rays of 8 rendered training
+            views end) or agreement (of log-spaced candidate levels, the one whose surface is closest to
+            those points; candidates and scores go to mesh.json).
         min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters).
         remove_unseen: drop faces no training camera sees.
         close_holes: fill holes of at most this many edges (0: off).

@@ -41,12 +41,17 @@ class MeshConfig:
     """Grid samples along the longest side of the box (mc), or TSDF voxels along it (tsdf)."""
     level: "float | None" = None
     """Density iso-level (mc); default: chosen by ``level_from``."""
-    level_from: Literal["agreement", "quantile", "opacity"] = "quantile"
-    """Automatic level (mc). quantile (default; it measured better than agreement on the demo scene, see the
-    README): the ``level_quantile`` quantile of the density where rendered training rays end. agreement: the candidate level whose surface is closest to the points where
+    level_from: Literal["agreement", "quantile", "opacity"] = "opacity"
+    """Automatic level (mc). opacity (default): the density at which a ray crossing one voxel of the grid is
+    ``level_opacity`` blocked, ``-ln(1 - level_opacity) / h`` (of the three rules it measured best on both
+    references we have, the demo's ground-truth mesh and colmap_mouse's sparse points: see the README).
+    quantile: the ``level_quantile`` quantile of the density where rendered training rays end. agreement: the candidate level whose surface is closest to the points where
     rendered training rays end (at their median depth in the sampled volume when the ray origins are given; clamped Chamfer distance, candidates meshed on a ``level_downsample`` times
-    coarser copy of the sampled volume; see :mod:`nerfpipe.mesh.level`); opacity: one voxel half opaque, ln 2 / h. agreement and
-    quantile need rendered surface points."""
+    coarser copy of the sampled volume; see :mod:`nerfpipe.mesh.level`). agreement and quantile need rendered
+    surface points."""
+    level_opacity: float = 0.05
+    """With ``level_from=opacity``: the opacity of one voxel at the level (0.5 puts the surface at the core of
+    a soft shell and leaves holes; 0.05 at its front, where the photographs see it)."""
     level_quantile: float = 0.1
     """With ``level_from=quantile``: the level is this quantile of the densities where rendered rays end,
     i.e. the surface encloses ``1 - level_quantile`` of the observed surface points."""
@@ -130,8 +135,8 @@ def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) 
         figures["level_rule"] = "given"
         return float(cfg.level)
     if cfg.level_from == "opacity":
-        figures["level_rule"] = "opacity"
-        return auto_level(volume.grid.spacing)
+        figures.update(level_rule="opacity", level_opacity=cfg.level_opacity)
+        return auto_level(volume.grid.spacing, cfg.level_opacity)
     if surface is None:
         raise NerfpipeError(f"level_from={cfg.level_from} needs rendered surface points; give a level or use level_from=opacity")
     surface_points, surface_origins = surface
