@@ -7,7 +7,7 @@ periodic full-image evaluation for the PSNR curve is timed separately (``eval_se
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
