@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from nerfpipe.errors import require
 from nerfpipe.pixel_sampler import background_colors, composite_pixels
-from nerfpipe.render import render_cameras, resize_cameras, to_uint8
+from nerfpipe.render import capped_size, render_cameras, resize_cameras, to_uint8
 from nerfpipe.runs import write_json
 
 
@@ -40,17 +40,6 @@ def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
     return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, 11).mean())
 
 
-def eval_size(width: int, height: int, scale: float, max_size: "int | None") -> "tuple[int, int]":
-    """Size of a validation render: ``scale`` of the camera's, the longer side capped at ``max_size``.
-
-    Example:
-        >>> eval_size(1920, 1440, 1.0, 800), eval_size(200, 200, 1.0, 800), eval_size(400, 400, 0.5, None)
-        ((800, 600), (200, 200), (200, 200))
-    """
-    s = scale if max_size is None else min(scale, max_size / max(width, height))
-    return max(1, round(width * s)), max(1, round(height * s))
-
-
 VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
 """Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
 
@@ -62,7 +51,7 @@ def validate(trainer, num_views: int) -> "tuple[float, float]":
     idx = [int(i) for i in scene.splits[split]]
     idx = idx[: num_views] if num_views else idx
     cams = scene.cameras[torch.tensor(idx)]
-    sizes = [eval_size(int(w), int(h), cfg.eval_scale, cfg.eval_max_size) for w, h in zip(cams.width, cams.height)]
+    sizes = [capped_size(int(w), int(h), cfg.eval_scale, cfg.eval_max_size) for w, h in zip(cams.width, cams.height)]
     bg = background_colors(trainer.eval_bg, 1)[0]
     scores = []
     for i, (w, h) in zip(range(len(idx)), sizes):

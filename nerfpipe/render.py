@@ -69,6 +69,17 @@ def render_cameras(
     return views
 
 
+def capped_size(width: int, height: int, scale: float, max_size: "int | None") -> "tuple[int, int]":
+    """``scale`` times a camera's size, the longer side capped at ``max_size`` pixels (None: no cap).
+
+    Example:
+        >>> capped_size(1920, 1440, 1.0, 800), capped_size(200, 200, 1.0, 800), capped_size(400, 400, 0.5, None)
+        ((800, 600), (200, 200), (200, 200))
+    """
+    s = scale if max_size is None else min(scale, max_size / max(width, height))
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
 def resize_cameras(cameras: Cameras, width: int, height: int) -> Cameras:
     """The same cameras imaging ``width x height`` pixels (intrinsics scaled per axis)."""
     sx = width / cameras.width.to(cameras.fx.dtype)

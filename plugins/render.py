@@ -114,9 +114,10 @@ def run(config: RenderConfig, ctx: StageContext) -> "dict[str, object]":
 
 def frame_size(cams, config: RenderConfig, extra_scale: float) -> "tuple[int, int]":
     """Width and height of the frames: ``scale``, capped at ``max_size`` on the longer side, times ``extra_scale``."""
-    w, h = int(cams.width[0]), int(cams.height[0])
-    s = min(config.scale, config.max_size / max(w, h)) * extra_scale
-    return max(1, round(w * s)), max(1, round(h * s))
+    from nerfpipe.render import capped_size
+
+    w, h = capped_size(int(cams.width[0]), int(cams.height[0]), config.scale, config.max_size)
+    return max(1, round(w * extra_scale)), max(1, round(h * extra_scale))
 
 
 STAGE = StageSpec(
