@@ -22,6 +22,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from nerfpipe.functional.packed import more_opaque_than
 from nerfpipe.functional.volrend import MAX_THICKNESS
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
@@ -265,7 +266,7 @@ class OccupancyGrid(nn.Module):
         trans, optical_depth = _transmittance(sigma, samples, row, col, state.optical_depth, valid.shape)
         keep = trans > min_transmittance
         if min_alpha is not None:
-            keep &= -torch.expm1(-sigma * (samples.t_ends - samples.t_starts)) > min_alpha
+            keep &= more_opaque_than(sigma, samples.t_ends - samples.t_starts, min_alpha)
         n_valid = rank[:, -1]
         advance = torch.where(n_valid > k_max, (rank < k_max).sum(dim=1) + 1, steps)
         state = _RayState(state.rays, state.next_step + advance, optical_depth)

@@ -87,8 +87,13 @@ def prune_mask(
     _, trans = render_weights_packed(sigmas, deltas, ray_indices)
     keep = trans > min_transmittance
     if min_alpha is not None:
-        keep &= -torch.expm1(-sigmas * deltas) > min_alpha
+        keep &= more_opaque_than(sigmas, deltas, min_alpha)
     return keep
+
+
+def more_opaque_than(sigmas: Float[Tensor, "num_samples"], deltas: Float[Tensor, "num_samples"], min_alpha: float) -> Bool[Tensor, "num_samples"]:
+    """Samples whose opacity ``1 - exp(-sigma * delta)`` exceeds ``min_alpha``."""
+    return -torch.expm1(-sigmas * deltas) > min_alpha
 
 
 def accumulate_packed(

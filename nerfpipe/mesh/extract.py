@@ -7,11 +7,11 @@ extracts the iso-surface ``density == level``.
 Choosing the level. A density has no natural iso-value, but the renderer gives one a
 meaning: a ray crossing a slab of thickness ``h`` with density σ is blocked with probability
 ``1 - exp(-σ h)``. :func:`auto_level` is the density at which one voxel of the extraction grid
-is half opaque, ``σ = ln 2 / h``: a surface the mesh resolves is one a ray stops at within one
-voxel. :func:`level_from_surface_points` takes a low quantile of the density where rendered rays
-end. Both misplace the thin shells trained grid fields learn; the default of the mesh pipeline
-is :func:`nerfpipe.mesh.level.choose_level`, the level whose surface best agrees with rendered
-depth, which meshes one sampled :class:`Volume` (:func:`sample_volume`) at several levels.
+blocks a given fraction of a ray (half by default, ``σ = ln 2 / h``; the mesh pipeline uses 5%,
+the front of the soft shells trained fields learn). :func:`level_from_surface_points` takes a low
+quantile of the density where rendered rays end, and :func:`nerfpipe.mesh.level.choose_level` the
+level whose surface best agrees with rendered depth, meshing one sampled :class:`Volume`
+(:func:`sample_volume`) at several levels.
 """
 
 import math
