@@ -185,7 +185,9 @@ def plot(rows: "list[dict]", path: Path, title: str) -> None:
     ax.set_ylabel("val PSNR (dB)")
     ax.set_title(f"{title}: speed against error (marker area ~ model MB)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    legend = ax.legend(fontsize=8, loc="lower right")
+    for handle in legend.legend_handles:  # one marker size in the legend: the areas are in the plot
+        handle.set_sizes([40])
     fig.tight_layout()
     from nerfpipe.atomic import atomic_write
 
