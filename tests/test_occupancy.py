@@ -1,5 +1,6 @@
 """Occupancy grid: ray-box intersection, marching against a per-sample reference, updates from a density."""
 
+import pytest
 import torch
 
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, ray_aabb_intersect
@@ -75,5 +76,78 @@ def test_update_decays_when_density_vanishes():
     grid.update(lambda x: torch.full(x.shape[:1], 10.0), step_size=0.01)
     assert grid.binary.all()
     for _ in range(12):
-        grid.update(lambda x: torch.zeros(x.shape[:1]), step_size=0.01)
+        grid.update(lambda x: torch.zeros(x.shape[:1]), step_size=0.01, full=True)
     assert grid.density.max() < 10.0 * 0.5**11
+
+
+def test_partial_refresh_covers_the_occupied_cells_and_a_random_fraction():
+    torch.manual_seed(0)
+    grid = OccupancyGridConfig(resolution=16, ema_decay=0.5, update_fraction=0.25).setup(AABB)
+    grid.update(lambda x: torch.where(x[:, 0] < -0.5, 10.0, 1e-6), step_size=0.01)  # first refresh: every cell
+    before = grid.density.clone()
+    assert (before > 0).all() and grid.binary.float().mean() == 0.25
+    grid.update(lambda x: torch.zeros(x.shape[:1]), step_size=0.01)  # later ones: part of the cells
+    refreshed = grid.density != before
+    occupied = before * 0.01 > 0.01
+    assert refreshed[occupied].all()  # 1024 occupied cells <= 1024 drawn: all of them refreshed
+    assert torch.allclose(grid.density[refreshed], before[refreshed] * 0.5)
+    fraction = refreshed[~occupied].float().mean()  # 1024 uniform draws over 4096 cells, with repeats
+    assert 0.15 < fraction < 0.3
+
+
+def sparse_grid(skip_factor, seed=3):
+    """A non-cubic box with sparse occupancy: a small cloud of cells, one corner cell, one cell on a face."""
+    aabb = torch.tensor([[-1.0, -0.5, -1.0], [1.0, 0.5, 0.25]])
+    grid = OccupancyGridConfig(resolution=32, skip_factor=skip_factor).setup(aabb)
+    g = torch.Generator().manual_seed(seed)
+    occ = torch.zeros(32, 32, 32, dtype=torch.bool)
+    occ[12:20, 10:18, 14:22] = torch.rand(8, 8, 8, generator=g) < 0.3
+    occ[31, 31, 31] = occ[0, 7, 9] = True
+    grid.binary.copy_(occ.reshape(-1))
+    return grid
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_two_level_skipping_keeps_exactly_the_same_intervals(jitter):
+    """The coarse pass only skips intervals the fine test would drop: same samples, far fewer marched."""
+    o, d = rays(600, seed=4)
+    d[::5] = torch.nn.functional.normalize(torch.randn(120, 3, generator=torch.Generator().manual_seed(5)), dim=-1)
+    fast, slow = sparse_grid(skip_factor=4), sparse_grid(skip_factor=0)
+    torch.manual_seed(7)
+    got = fast.march(o, d, near=0.0, far=10.0, step_size=0.02, jitter=jitter)
+    torch.manual_seed(7)
+    ref = slow.march(o, d, near=0.0, far=10.0, step_size=0.02, jitter=jitter)
+    assert len(ref) > 100
+    assert torch.equal(got.ray_indices, ref.ray_indices)
+    assert torch.equal(got.t_starts, ref.t_starts) and torch.equal(got.t_ends, ref.t_ends)
+    lim, lim_ref = (g._limits(o, d, 0.0, 10.0, 0.02, False, None) for g in (fast, slow))
+    marched = (lim.last - lim.first + 1).clamp(min=0).sum()
+    assert marched < 0.5 * (lim_ref.last - lim_ref.first + 1).clamp(min=0).sum()
+
+
+def test_coarse_occupancy_follows_changes_of_the_mask():
+    grid = sparse_grid(skip_factor=4)
+    o, d = rays(50, seed=6)
+    before = grid._limits(o, d, 0.0, 10.0, 0.02, False, None)
+    grid.binary.fill_(True)  # edited in place: the cached coarse grid must not be used
+    after = grid._limits(o, d, 0.0, 10.0, 0.02, False, None)
+    unskipped = sparse_grid(skip_factor=0)._limits(o, d, 0.0, 10.0, 0.02, False, None)
+    hit = unskipped.t0 < unskipped.t1  # rays that miss the box march nothing either way
+    assert 0 < hit.sum() < 50
+    assert torch.equal(after.first[hit], unskipped.first[hit]) and torch.equal(after.last[hit], unskipped.last[hit])
+    assert (before.first[hit] > after.first[hit]).any()
+
+
+def test_two_level_skipping_in_rounds_keeps_the_same_samples():
+    """Early-terminated marching (rounds) with and without the coarse pass: the same samples and densities."""
+    o, d = rays(600, seed=8)
+    fast, slow = sparse_grid(skip_factor=4), sparse_grid(skip_factor=0)
+    density = lambda s: 30.0 * (s.points(o, d)[:, 0] + 1.0)  # noqa: E731 - opaque towards +x
+    out = []
+    for grid in (fast, slow):
+        torch.manual_seed(9)
+        out.append(grid.march_until_opaque(o, d, 0.0, 10.0, 0.02, density, 1e-4, 1e-4, jitter=True))
+    (got, sigma), (ref, ref_sigma) = out
+    assert len(ref) > 100
+    assert torch.equal(got.ray_indices, ref.ray_indices) and torch.equal(got.t_starts, ref.t_starts)
+    assert torch.equal(sigma, ref_sigma)

@@ -41,6 +41,13 @@ class OccupancyGridConfig:
     """Decay of the running density per refresh."""
     threshold: float = 0.01
     """A cell is occupied when ``density * step_size`` exceeds this (or the mean, if lower)."""
+    update_fraction: float = 0.25
+    """Each refresh after the first evaluates this fraction of the cells, drawn at random, plus as
+    many occupied cells at most (nerfacc's schedule); the others keep their running density. 1: all."""
+    skip_factor: int = 4
+    """Two-level empty-space skipping: each ray is first marched through a grid this many times
+    coarser (occupancy dilated by one coarse cell) and only the span between its first and last
+    occupied coarse cell is marched finely. The kept samples are the same (0 or 1: off)."""
 
     def setup(self, aabb: Float[Tensor, "2 3"]) -> "OccupancyGrid":
         return OccupancyGrid(self, aabb)
@@ -76,7 +83,10 @@ class _Limits:
     t1: Tensor
     offset: Tensor
     step_size: float
-    max_steps: int
+    first: Tensor
+    """Per ray, the first interval number that can be occupied (0 without skipping)."""
+    last: Tensor
+    """Per ray, the last interval number that can be occupied (``first > last``: none)."""
 
     def t_start(self, rays: Tensor, k: Tensor) -> Tensor:
         """Start of interval ``k`` of each ray (as :meth:`OccupancyGrid._intervals` computes it)."""
@@ -105,6 +115,7 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("aabb", aabb.detach().clone().float())
         self.register_buffer("density", torch.zeros(r**3))
         self.register_buffer("binary", torch.ones(r**3, dtype=torch.bool))
+        self._coarse_cache: "tuple | None" = None
 
     @property
     def occupied_fraction(self) -> float:
@@ -123,22 +134,40 @@ class OccupancyGrid(nn.Module):
         idx, inside = self.cell_index(points)
         return self.binary[idx] & inside
 
-    def cell_centers(self, jitter: bool) -> Float[Tensor, "num_cells 3"]:
+    def cell_centers(self, jitter: bool, cells: "Int[Tensor, 'num_cells'] | None" = None) -> Float[Tensor, "num_cells 3"]:
+        """Centres of all cells (or of ``cells``, by row), or one random point in each when ``jitter``."""
         r = self.cfg.resolution
-        ar = torch.arange(r, device=self.aabb.device, dtype=torch.float32)
-        ijk = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3)
+        if cells is None:
+            cells = torch.arange(r**3, device=self.aabb.device)
+        ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], dim=-1).float()
         ijk = ijk + (torch.rand_like(ijk) if jitter else 0.5)
         return self.aabb[0] + ijk / r * (self.aabb[1] - self.aabb[0])
 
     @torch.no_grad()
-    def update(self, density_fn: Callable[[Tensor], Tensor], step_size: float, chunk: int = 1 << 19) -> None:
-        """Refresh the running density at every cell (one jittered point each) and the mask."""
-        pts = self.cell_centers(jitter=True)
+    def update(self, density_fn: Callable[[Tensor], Tensor], step_size: float, full: bool = False, chunk: int = 1 << 19) -> None:
+        """Refresh the running density (one jittered point per cell) and the mask: at every cell when
+        ``full``, at the first refresh (no density yet) or when ``update_fraction >= 1``, else at a
+        random fraction of the cells and the occupied ones."""
+        full = full or self.cfg.update_fraction >= 1 or not bool(self.density.any())
+        cells = None if full else self._cells_to_refresh()
+        pts = self.cell_centers(jitter=True, cells=cells)
         new = torch.cat([density_fn(p).reshape(-1).float() for p in pts.split(chunk)])
-        self.density.copy_(torch.maximum(self.density * self.cfg.ema_decay, new))
+        if cells is None:
+            self.density.copy_(torch.maximum(self.density * self.cfg.ema_decay, new))
+        else:
+            self.density[cells] = torch.maximum(self.density[cells] * self.cfg.ema_decay, new)
         occ = self.density * step_size
         thre = min(self.cfg.threshold, float(occ.clamp(min=0).mean()))
         self.binary.copy_(occ > thre)
+
+    def _cells_to_refresh(self) -> Int[Tensor, "num_refreshed"]:
+        """``update_fraction`` of the cells uniformly at random, and the occupied cells (as many at most)."""
+        n = max(1, int(self.binary.numel() * self.cfg.update_fraction))
+        uniform = torch.randint(self.binary.numel(), (n,), device=self.binary.device)
+        occupied = self.binary.nonzero()[:, 0]
+        if len(occupied) > n:
+            occupied = occupied[torch.randint(len(occupied), (n,), device=occupied.device)]
+        return torch.cat([uniform, occupied]).unique()
 
     def occupied_aabb(self) -> Float[Tensor, "2 3"]:
         """The smallest box around the occupied cells (the whole box when none is)."""
@@ -160,9 +189,54 @@ class OccupancyGrid(nn.Module):
         t0, t1 = ray_aabb_intersect(origins, directions, box)
         t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
         n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
-        max_steps = int(n_steps.max()) if n_steps.numel() else 0
         offset = torch.rand_like(t0) if jitter else torch.zeros_like(t0)
-        return _Limits(origins, directions, t0, t1, offset, step_size, max_steps)
+        lim = _Limits(origins, directions, t0, t1, offset, step_size, torch.zeros_like(n_steps), n_steps)
+        if self.cfg.skip_factor > 1 and n_steps.numel():
+            lim.first, lim.last = self._occupied_span(lim)
+        return lim
+
+    def _coarse(self) -> "tuple[Bool[Tensor, 'num_coarse'], int]":
+        """Occupancy of cells ``skip_factor`` times larger, dilated by one cell (cached until ``binary`` changes)."""
+        key = (self.binary._version, self.binary.data_ptr())
+        if self._coarse_cache is None or self._coarse_cache[0] != key:
+            r, f = self.cfg.resolution, self.cfg.skip_factor
+            occ = self.binary.view(1, 1, r, r, r).float()
+            coarse = torch.nn.functional.max_pool3d(occ, f, f, ceil_mode=True)
+            coarse = torch.nn.functional.max_pool3d(coarse, 3, 1, padding=1)
+            self._coarse_cache = (key, coarse.reshape(-1) > 0, coarse.shape[-1])
+        return self._coarse_cache[1], self._coarse_cache[2]
+
+    def _occupied_span(self, lim: "_Limits", chunk: int = 1 << 21) -> "tuple[Tensor, Tensor]":
+        """First and last interval of each ray that can meet an occupied cell.
+
+        The ray is sampled every ``h`` (the smallest side of a coarse cell) at ``t0 + (j + 1/2) h``.
+        Every point of ``[t0, t1]`` lies within ``h / 2`` of a sample, so within one coarse cell of it
+        along each axis: a point in an occupied cell puts a sample in the dilated coarse occupancy.
+        No occupied point therefore lies before ``t0 + j_first h`` or after ``t0 + (j_last + 1) h``,
+        and the intervals wholly outside that span (one more on each side for rounding) are skipped.
+        """
+        coarse, rc = self._coarse()
+        r, f = self.cfg.resolution, self.cfg.skip_factor
+        ext = self.aabb[1] - self.aabb[0]
+        h = float((ext / r).min()) * f
+        n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0).long()
+        n_max = max(int(n.max()), 1)
+        j = torch.arange(n_max, device=n.device)
+        j_first, j_last, hit_any = [], [], []
+        for s in range(0, len(n), max(1, chunk // n_max)):
+            rows = slice(s, s + max(1, chunk // n_max))
+            t = lim.t0[rows, None] + (j + 0.5).to(lim.t0.dtype) * h
+            pts = lim.origins[rows, None, :] + t[..., None] * lim.directions[rows, None, :]
+            ijk = torch.div(((pts - self.aabb[0]) / ext * r).floor().clamp(0, r - 1).long(), f, rounding_mode="floor")
+            hit = coarse[(ijk[..., 0] * rc + ijk[..., 1]) * rc + ijk[..., 2]] & (j < n[rows, None])
+            j_first.append(hit.byte().argmax(dim=1))
+            j_last.append(n_max - 1 - hit.flip(1).byte().argmax(dim=1))
+            hit_any.append(hit.any(dim=1))
+        jf, jl, any_hit = torch.cat(j_first), torch.cat(j_last), torch.cat(hit_any)
+        per_step = h / lim.step_size
+        first = ((jf * per_step - lim.offset).floor().long() - 1).clamp(min=0)
+        last = torch.minimum(((jl + 1) * per_step - lim.offset + 1.0).ceil().long() + 1, lim.last)
+        return torch.where(any_hit, first, lim.last + 1), last
 
     @torch.no_grad()
     def march(
@@ -186,11 +260,14 @@ class OccupancyGrid(nn.Module):
             aabb: march only inside this box (default: the grid's box), e.g. :meth:`occupied_aabb`.
         """
         lim = self._limits(origins, directions, near, far, step_size, jitter, aabb)
-        k = torch.arange(lim.max_steps + 1, device=origins.device, dtype=origins.dtype)[None, :]
-        parts, rows = [], max(1, chunk_samples // max(lim.max_steps, 1))
+        span = int((lim.last - lim.first).max()) + 1 if origins.shape[0] else 0
+        k = torch.arange(max(span, 0), device=origins.device)[None, :]
+        parts, rows = [], max(1, chunk_samples // max(span, 1))
         for s in range(0, origins.shape[0], rows):
             rays = torch.arange(s, min(s + rows, origins.shape[0]), device=origins.device)
-            valid, t_starts, t_ends = self._intervals(lim, rays, k)
+            ks = lim.first[rays, None] + k
+            valid, t_starts, t_ends = self._intervals(lim, rays, ks.to(origins.dtype))
+            valid &= ks <= lim.last[rays, None]
             ray, step = valid.nonzero(as_tuple=True)
             parts.append((rays[ray], t_starts[ray, step], t_ends[ray, step]))
         if not parts:
@@ -258,7 +335,7 @@ class OccupancyGrid(nn.Module):
         """March ``steps`` intervals of the rays in ``state``, evaluate the first ``k_max`` occupied ones."""
         k = state.next_step[:, None] + torch.arange(steps, device=state.rays.device)
         valid, t_starts, t_ends = self._intervals(lim, state.rays, k.to(lim.t0.dtype))
-        valid &= k <= lim.max_steps
+        valid &= k <= lim.last[state.rays, None]
         rank = valid.cumsum(dim=1)
         row, col = (valid & (rank <= k_max)).nonzero(as_tuple=True)
         samples = PackedSamples(state.rays[row], t_starts[row, col], t_ends[row, col], lim.origins.shape[0])
@@ -271,7 +348,7 @@ class OccupancyGrid(nn.Module):
         advance = torch.where(n_valid > k_max, (rank < k_max).sum(dim=1) + 1, steps)
         state = _RayState(state.rays, state.next_step + advance, optical_depth)
         alive = torch.exp(-optical_depth.to(trans.dtype)) > min_transmittance
-        alive &= (state.next_step <= lim.max_steps) & (lim.t_start(state.rays, state.next_step) < lim.t1[state.rays])
+        alive &= (state.next_step <= lim.last[state.rays]) & (lim.t_start(state.rays, state.next_step) < lim.t1[state.rays])
         return (samples.select(keep), sigma[keep]), state.select(alive)
 
 
@@ -305,9 +382,8 @@ class _RayState:
 
     @staticmethod
     def start(lim: _Limits) -> "_RayState":
-        rays = (lim.t0 < lim.t1).nonzero()[:, 0]
-        zeros = torch.zeros_like(rays)
-        return _RayState(rays, zeros, torch.zeros(len(rays), dtype=torch.float64, device=rays.device))
+        rays = ((lim.t0 < lim.t1) & (lim.first <= lim.last)).nonzero()[:, 0]
+        return _RayState(rays, lim.first[rays], torch.zeros(len(rays), dtype=torch.float64, device=rays.device))
 
     @staticmethod
     def cat(states: "list[_RayState]") -> "_RayState":
