@@ -18,6 +18,10 @@ import zlib  # noqa: F401  (import-order guard, see above)
 # effect when nerfpipe is imported before torch starts its thread pool; an explicit setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from nerfpipe.malloc import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # large per-step tensors reuse freed memory instead of new pages (see nerfpipe.malloc)
+
 from nerfpipe.cameras import Cameras, invert_rigid, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.functional.distortion import Distortion

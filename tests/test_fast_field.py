@@ -116,6 +116,26 @@ def test_coarse_to_fine_levels_survive_a_checkpoint():
     torch.testing.assert_close(fresh.field.density(probe), fine)
 
 
+def test_sample_spacing_refines_on_schedule_and_survives_a_checkpoint():
+    cfg = FastConfig(levels=(8, 16), feature_channels=2, hidden=8, step_ratio=0.5, early_step_ratio=1.0,
+                     fine_steps_from=30, coarse_to_fine_every=0, tighten_step=0)
+    model = cfg.setup(info())
+    early = model.step_size
+    model._before_step(29)
+    assert model.step_size == early
+    model._before_step(30)
+    assert model.step_size == pytest.approx(early / 2)
+    fresh = cfg.setup(info())
+    assert fresh.step_size == pytest.approx(early)
+    fresh.load_state_dict(model.state_dict())
+    assert fresh.step_size == pytest.approx(early / 2)
+    # a checkpoint written before the step count was saved was trained with the fine spacing
+    old = {k: v for k, v in model.state_dict().items() if k != "trained_steps"}
+    older = cfg.setup(info())
+    older.load_state_dict(old)
+    assert older.step_size == pytest.approx(early / 2)
+
+
 def test_render_outputs_and_stats():
     model = FastConfig(**TINY).setup(info())
     o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 5.0, -3.0]])

@@ -62,7 +62,12 @@ class FastConfig:
     lr_min_factor: float = 0.03
     """Learning rates never fall below this fraction of their start."""
     step_ratio: float = 0.5
-    """Sample spacing along rays, in voxels of the finest level."""
+    """Sample spacing along rays, in voxels of the finest active level (from ``fine_steps_from`` on)."""
+    early_step_ratio: float = 1.0
+    """Sample spacing before step ``fine_steps_from``: coarser while the field is still blurry, so the
+    first minutes train on about half the samples per ray."""
+    fine_steps_from: int = 512
+    """Training step from which ``step_ratio`` is used (0: from the start)."""
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
     """The occupancy grid that skips empty space."""
     init_alpha: float = 0.01
@@ -113,6 +118,8 @@ class FastModel(Model):
         self.cfg, self.info = cfg, info
         self.capacity = cfg.resolved(info)
         aabb = info.aabb.detach().float()
+        self._step = 0
+        self.register_buffer("trained_steps", torch.tensor(0))
         self.field = FastField(aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"])
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
         n_levels = len(self.capacity["levels"])
@@ -123,7 +130,6 @@ class FastModel(Model):
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head() if learn_bg else None
         self._samples_per_ray = 0.0
-        self._step = 0
 
     @staticmethod
     def _background_head() -> torch.nn.Module:
@@ -141,7 +147,11 @@ class FastModel(Model):
     def step_size(self) -> float:
         extent = self.field.aabb[1] - self.field.aabb[0]
         res = torch.tensor(self.field.density_grid.resolutions[self.field.active_levels - 1], dtype=extent.dtype, device=extent.device)
-        return float((extent / (res - 1)).min()) * self.cfg.step_ratio
+        return float((extent / (res - 1)).min()) * self._step_ratio()
+
+    def _step_ratio(self) -> float:
+        fine = not self.cfg.fine_steps_from or self._step >= self.cfg.fine_steps_from
+        return self.cfg.step_ratio if fine else self.cfg.early_step_ratio
 
     def _march_step(self) -> float:
         warm = self.training and self._step < self.cfg.occupancy.warmup_steps
@@ -224,6 +234,7 @@ class FastModel(Model):
 
     def _before_step(self, step: int) -> None:
         self._step = step
+        self.trained_steps.fill_(step)
         every, n = self.cfg.coarse_to_fine_every, len(self.field.density_grid.resolutions)
         self.field.active_levels = min(n, 2 + step // every) if every > 0 else n
         self.active_levels.fill_(self.field.active_levels)
@@ -289,6 +300,9 @@ class FastModel(Model):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         """Accept checkpoints whose grids were resampled to a tightened box."""
+        # checkpoints from before the step count was saved were trained with the fine spacing
+        steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
+        self._step = int(steps)
         key = prefix + "field.aabb"
         if key in state_dict:
             resolutions = self._resolutions(state_dict[key].to(self.field.aabb))
