@@ -55,7 +55,7 @@ class FastConfig:
     """Override the preset's colour MLP width."""
     grid_lr: float = 1.0
     """Adam learning rate of the grid tables (high: each step moves a vertex by about this much)."""
-    mlp_lr: float = 5e-3
+    mlp_lr: float = 1e-2
     """Adam learning rate of the colour MLP."""
     lr_decay_steps: int = 2000
     """Learning rates fall tenfold every this many steps (exponentially; 0: constant)."""
@@ -72,7 +72,7 @@ class FastConfig:
     """The occupancy grid that skips empty space."""
     init_alpha: float = 0.01
     """Opacity of one step everywhere at the start."""
-    coarse_to_fine_every: int = 64
+    coarse_to_fine_every: int = 32
     """Grid levels beyond the first two are switched on one by one every this many steps (0: all at once)."""
     warmup_step_factor: float = 4.0
     """Before the first occupancy update every cell is occupied: march with this many times the step."""
