@@ -1,4 +1,4 @@
-"""Seconds to allocate a grid-sized gradient, with and without :func:`nerfpipe.malloc.keep_freed_memory`.
+"""Seconds to allocate a grid-sized gradient, with and without :func:`nerfpipe.runtime.keep_freed_memory`.
 
 Run: ``python -m benchmarks.alloc_speed`` (each setting in a fresh interpreter, since the allocator
 settings are process-wide).

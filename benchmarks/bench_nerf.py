@@ -108,7 +108,7 @@ def _trainer(scene, name: str, cfg: BenchConfig, out: Path):
 
 
 def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -> dict:
-    from nerfpipe import evaluation
+    from nerfpipe import evaluation, runtime
 
     t0 = time.perf_counter()
     psnr, ssim = evaluation.validate(trainer, cfg.eval_views)
@@ -118,7 +118,7 @@ def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -
         "iterations": trainer.step, "val_psnr": psnr, "val_ssim": ssim,
         "model_params": int(stats.get("model_params", 0)), "model_mb": float(stats.get("model_mb", 0.0)),
         "occupied_fraction": stats.get("occupied_fraction"), "samples_per_ray": stats.get("samples_per_ray"),
-        "eval_s": time.perf_counter() - t0, "loadavg": os.getloadavg()[0],
+        "eval_s": time.perf_counter() - t0, "loadavg": os.getloadavg()[0], "omp_wait": runtime.OMP_WAIT,
     }
 
 
@@ -136,7 +136,7 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> 
         rows.append(_score(trainer, cfg, name, budget, clock))
         r = rows[-1]
         print(f"{name:12s} {budget:6g} s: {r['val_psnr']:.2f} dB after {r['iterations']} it "
-              f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f})", flush=True)
+              f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f}, OpenMP waits: {r['omp_wait']})", flush=True)
         if on_row is not None:
             on_row(r)
     return rows
@@ -149,15 +149,15 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
     write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
     lines = [
         f"# Speed against error on {scene_name}", "",
-        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | occupied | samples/ray | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | occupied | samples/ray | load | OpenMP waits |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in rows:
         lines.append(
             f"| {r['preset']} | {r['budget_s']:g} | {r['train_s']:.1f} | {r['train_cpu_s']:.1f} | {r['iterations']} | "
             f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | "
-            f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} |"
+            f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
         )
     atomic_write(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
     plot(rows, out / "psnr_vs_seconds.png", scene_name)

@@ -1,8 +1,10 @@
-"""Render and training-step speed of a trained ``fast`` run, with and without early ray termination.
+"""Render and training-step speed of a trained ``fast`` run, with and without early ray termination
+and two-level empty-space skipping.
 
 Run: ``python -m benchmarks.render_speed RUN_DIR`` (e.g. ``/work/runs/lego300/train``).
-For each mode (``early``: the density pass in rounds that stop at opaque rays; ``reference``: the
-full density pass over every marched sample) it measures
+For each mode (``reference``: the full density pass over every marched sample; ``early-noskip``: the
+density pass in rounds that stop at opaque rays; ``early``: rounds, and each ray marched only over the
+span a coarser occupancy grid allows) it measures
 
 * seconds per frame of :func:`~nerfpipe.render.render_cameras` on the first val views, at each thread count,
 * samples the density-only pass evaluated per ray, and samples kept (shaded) per ray,
@@ -33,8 +35,9 @@ class RenderSpeedConfig:
 
     run_dir: tyro.conf.Positional[Path]
     """A run folder of the ``fast`` model (config.json + checkpoint.pt)."""
-    modes: "tuple[str, ...]" = ("reference", "early")
-    """``early`` (rounds with early termination) and/or ``reference`` (the full density pass)."""
+    modes: "tuple[str, ...]" = ("reference", "early-noskip", "early")
+    """``reference`` (the full density pass, one-level marching), ``early-noskip`` (rounds with early
+    termination, one-level marching) and/or ``early`` (rounds, two-level empty-space skipping)."""
     threads: "tuple[int, ...]" = (1, 2)
     """torch thread counts for the frame timings."""
     frames: int = 2
@@ -60,11 +63,23 @@ class _Counter:
         return self.fn(points)
 
 
+MODES = {"reference": (False, 0), "early-noskip": (True, 0), "early": (True, None)}
+"""mode: (early ray termination, occupancy ``skip_factor``: 0 = one-level marching, None = the run's own)."""
+
+
 def set_mode(model, mode: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}: choose from {', '.join(MODES)}")
+    early, skip = MODES[mode]
+    occ = model.grid.cfg
+    if not hasattr(model, "_run_skip_factor"):
+        model._run_skip_factor = getattr(occ, "skip_factor", 0)
     if hasattr(model.cfg, "early_termination"):
-        model.cfg.early_termination = mode == "early"
-    elif mode != "reference":
+        model.cfg.early_termination = early
+    elif early:
         raise ValueError("this nerfpipe has no early termination: use --modes reference")
+    if hasattr(occ, "skip_factor"):
+        occ.skip_factor = model._run_skip_factor if skip is None else skip
 
 
 def val_cameras(scene, n: int):
@@ -162,9 +177,9 @@ def measure(cfg: RenderSpeedConfig) -> dict:
         res["quality"], images[mode] = quality_and_samples(model, scene, run_cfg, cfg)
         res["train_step"] = train_step_time(cfg.run_dir, run_cfg, mode, cfg)
         results[mode] = res
-    if len(images) == 2:
-        a, b = images.values()
-        results["max_abs_rgb_difference"] = max(float((x.rgb - y.rgb).abs().max()) for x, y in zip(a, b))
+    if len(images) >= 2:
+        first, *others = images.values()
+        results["max_abs_rgb_difference"] = max(float((x.rgb - y.rgb).abs().max()) for b in others for x, y in zip(first, b))
     return results
 
 

@@ -9,18 +9,14 @@ Layers (lower never imports upper):
 
 # pycolmap's wheel exports its own zlib symbols; when it is imported before Python's zlib, later
 # PNG writes abort the process. Loading zlib first makes the order safe for every nerfpipe user.
-import os
 import zlib  # noqa: F401  (import-order guard, see above)
 
-# OpenMP threads that spin while waiting (GNU OpenMP's default) make torch 5-20x slower on a machine
-# whose cores are shared with other processes (measured: a 4096-ray training step on 2 threads at load
-# 4.5 took 4.7 s spinning, 0.21 s passive). Sleeping waits cost little on an idle machine. Only takes
-# effect when nerfpipe is imported before torch starts its thread pool; an explicit setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before torch loads OpenMP: sleeping OpenMP waits when the machine is busy, and large freed blocks kept
+# by glibc's allocator (both measured and explained in nerfpipe/runtime.py).
+from nerfpipe import runtime  # noqa: E402
 
-from nerfpipe.malloc import keep_freed_memory  # noqa: E402
-
-keep_freed_memory()  # large per-step tensors reuse freed memory instead of new pages (see nerfpipe.malloc)
+runtime.OMP_WAIT = runtime.choose_omp_wait_policy()
+runtime.keep_freed_memory()
 
 from nerfpipe.cameras import Cameras, invert_rigid, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError

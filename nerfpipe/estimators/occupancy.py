@@ -1,15 +1,20 @@
 """An occupancy grid over the scene box that skips empty space (instant-ngp / nerfacc style).
 
 The grid keeps an exponential moving average of the density at each cell, refreshed from a
-``density_fn`` during training, and a binary mask ``density * step > threshold``. Rays are
-marched with a fixed step inside the box; samples in empty cells are dropped and the rest are
-packed (see :mod:`nerfpipe.functional.packed`), so the cost follows the occupied space.
+``density_fn`` during training (every cell at first, then a random quarter of them and the occupied
+ones), and a binary mask ``density * step > threshold``. Rays are marched with a fixed step inside
+the box; samples in empty cells are dropped and the rest are packed (see
+:mod:`nerfpipe.functional.packed`), so the cost follows the occupied space. Before that, each ray is
+sampled once per coarse cell of a 4x coarser, dilated copy of the mask, and only the span between its
+first and last occupied coarse cell is marched finely (the kept samples are the same).
 :meth:`OccupancyGrid.march_until_opaque` also evaluates a density on the way, in rounds of a few
 samples per ray, and stops each ray once it is opaque (early ray termination).
 
 Glossary:
     aabb        ``[2, 3]`` scene box ``[min, max]``
     cell        one of ``res^3`` boxes the aabb is cut into; cell ``(i, j, k)`` is row ``(i*res + j)*res + k``
+    coarse cell ``skip_factor^3`` cells; occupied when any of them or of its 26 neighbours' cells is
+    span        per ray, the interval numbers ``first..last`` that can meet an occupied cell
     step_size   distance between consecutive samples along a ray (world units)
     packed      samples of all rays back to back, ``ray_indices`` giving each sample's ray
     round       one pass of marching + density over the rays still alive (a few samples each)
