@@ -15,8 +15,9 @@ GOMP default (spin)         15.4 s                      14.2 s for 20 steps
 ==========================  ==========================  ==================================
 
 (and with several multi-threaded torch processes spinning against each other, a training step took
-4.7 s instead of 0.21 s). So nerfpipe keeps GOMP's default when the machine is idle at import (1-minute
-load average below the number of CPUs minus one half) and asks for ``PASSIVE`` otherwise. An explicit
+4.7 s instead of 0.21 s). So nerfpipe keeps GOMP's default when the machine is idle at import and asks
+for ``PASSIVE`` when other processes keep half of the CPUs or more busy (measured over 50 ms of
+``/proc/stat``; the 1-minute load average lags by a minute after a heavy process ends). An explicit
 ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` wins. The setting is read once, when torch loads OpenMP:
 import nerfpipe before torch for it to take effect.
 
@@ -56,15 +57,43 @@ OMP_WAIT = "unset"
 """What :func:`choose_omp_wait_policy` decided at import: ``spin`` (GOMP's default), ``passive`` or ``user``."""
 
 
-def choose_omp_wait_policy(environ: "dict | None" = None, load: "float | None" = None, cpus: "int | None" = None) -> str:
-    """Set ``OMP_WAIT_POLICY=PASSIVE`` when the machine is busy (see the module docstring); returns
-    ``user`` (an explicit setting was kept), ``passive`` or ``spin``."""
+def choose_omp_wait_policy(environ: "dict | None" = None, busy: "float | None" = None, cpus: "int | None" = None) -> str:
+    """Set ``OMP_WAIT_POLICY=PASSIVE`` when other processes keep at least half of the CPUs busy (see
+    the module docstring); returns ``user`` (an explicit setting was kept), ``passive`` or ``spin``.
+
+    Args:
+        environ: the environment to read and change (default: ``os.environ``).
+        busy: CPUs in use by others (default: measured by :func:`busy_cpus`).
+        cpus: CPUs of the machine (default: ``os.cpu_count()``).
+    """
     env = os.environ if environ is None else environ
     if "OMP_WAIT_POLICY" in env or "GOMP_SPINCOUNT" in env:
         return "user"
     cpus = cpus or os.cpu_count() or 1
-    load = os.getloadavg()[0] if load is None and hasattr(os, "getloadavg") else (load or 0.0)
-    if load >= cpus - 0.5:
+    busy = busy_cpus() if busy is None else busy
+    if busy >= cpus / 2:
         env["OMP_WAIT_POLICY"] = "PASSIVE"
         return "passive"
     return "spin"
+
+
+def busy_cpus(seconds: float = 0.05) -> float:
+    """CPUs in use over the next ``seconds`` (from ``/proc/stat``; elsewhere the 1-minute load average)."""
+    import time
+
+    def ticks() -> "tuple[int, int] | None":
+        try:
+            with open("/proc/stat") as f:
+                fields = [int(v) for v in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+        return sum(fields), idle
+
+    first = ticks()
+    if first is None:
+        return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    time.sleep(seconds)
+    second = ticks()
+    total, idle = second[0] - first[0], second[1] - first[1]
+    return (os.cpu_count() or 1) * (total - idle) / max(total, 1)

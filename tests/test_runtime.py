@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from nerfpipe.runtime import choose_omp_wait_policy, keep_freed_memory
+from nerfpipe.runtime import busy_cpus, choose_omp_wait_policy, keep_freed_memory
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
@@ -29,13 +29,24 @@ def test_big_tensors_still_allocate_and_free():
 def test_an_explicit_openmp_setting_wins():
     for key in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT"):
         env = {key: "1000"}
-        assert choose_omp_wait_policy(env, load=9.0, cpus=2) == "user" and env == {key: "1000"}
+        assert choose_omp_wait_policy(env, busy=2.0, cpus=2) == "user" and env == {key: "1000"}
 
 
 def test_passive_waits_only_on_a_busy_machine():
     busy, idle = {}, {}
-    assert choose_omp_wait_policy(busy, load=1.6, cpus=2) == "passive" and busy == {"OMP_WAIT_POLICY": "PASSIVE"}
-    assert choose_omp_wait_policy(idle, load=1.2, cpus=2) == "spin" and idle == {}
+    assert choose_omp_wait_policy(busy, busy=1.0, cpus=2) == "passive" and busy == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert choose_omp_wait_policy(idle, busy=0.3, cpus=2) == "spin" and idle == {}
+
+
+def test_busy_cpus_sees_a_busy_process():
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        import time
+
+        time.sleep(0.3)
+        assert busy_cpus(0.3) > 0.7
+    finally:
+        hog.kill()
 
 
 def test_the_import_decision_is_recorded():
