@@ -27,15 +27,21 @@ def test_write_table_outputs(tmp_path):
     assert (tmp_path / "psnr_vs_seconds.png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_bench_run_scores_each_budget(scene_path, tmp_path):
-    from benchmarks.bench_nerf import run
-
+def tiny_lego(scene_path, tmp_path):
+    """Every 20th lego training view and one val view at 16x16."""
     src = np.load(scene_path("lego_200x200") / "lego_200x200.npz")
     shrink = lambda im: F.interpolate(torch.from_numpy(im).permute(0, 3, 1, 2).float(), size=(16, 16), mode="area").round().byte().permute(0, 2, 3, 1).numpy()  # noqa: E731
     npz = tmp_path / "tiny.npz"
     np.savez(npz, images_train=shrink(src["images_train"][::20]), c2ws_train=src["c2ws_train"][::20],
              images_val=shrink(src["images_val"][:1]), c2ws_val=src["c2ws_val"][:1], c2ws_test=src["c2ws_test"][:1],
              focal=np.float64(src["focal"]) * 16 / 200)
+    return npz
+
+
+def test_bench_run_scores_each_budget(scene_path, tmp_path):
+    from benchmarks.bench_nerf import run
+
+    npz = tiny_lego(scene_path, tmp_path)
     rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads()))
     assert [r["budget_s"] for r in rows] == [0.2, 0.5]
     assert rows[0]["clock_s"] >= 0.2 and rows[1]["clock_s"] >= 0.5 and rows[1]["iterations"] >= rows[0]["iterations"] >= 1
@@ -56,3 +62,16 @@ def test_preset_overrides_reach_the_model_config():
         resolve_preset("fast-small:nope=1")
     with pytest.raises(NerfpipeError, match="unknown bench preset"):
         resolve_preset("fast-tiny")
+
+
+def test_steps_ab_tool_parses_options_and_validates_at_each_mark(scene_path, tmp_path):
+    from benchmarks.steps import StepsConfig, main, model_config
+
+    cfg = model_config("small", ("step_ratio=1.0", "occupancy.update_every=32", "levels=(8, 16)"))
+    assert (cfg.step_ratio, cfg.occupancy.update_every, cfg.levels, cfg.preset) == (1.0, 32, (8, 16), "small")
+    log = tmp_path / "steps.jsonl"
+    rows = main(StepsConfig(tiny_lego(scene_path, tmp_path), options=("levels=(8, 16)",), marks=(2, 4), eval_views=1,
+                            rays_per_step=64, threads=torch.get_num_threads(), log=log))
+    assert [r["step"] for r in rows] == [2, 4] and rows[1]["wall"] >= rows[0]["wall"] > 0
+    assert all(r["psnr"] > 5 and r["samples_per_ray"] > 0 for r in rows)
+    assert [json.loads(line)["psnr"] for line in log.read_text().splitlines()] == [r["psnr"] for r in rows]

@@ -1,0 +1,84 @@
+"""Quality and seconds per training step of the ``fast`` model for model-option overrides: the A/B tool
+behind the default choices (PSNR at equal step counts is deterministic on CPU; seconds are not).
+
+Run: ``python -m benchmarks.steps LEGO --options coarse_to_fine_every=32 mlp_lr=0.01 --marks 100 200 300``.
+Prints one JSON line per mark (step, cumulative training seconds, wall and CPU/threads, val PSNR over
+``--eval-views`` views, mean samples per ray, load) and appends them to ``--log`` when given.
+``occupancy.NAME=VALUE`` sets an option of the occupancy grid.
+"""
+
+import nerfpipe  # noqa: F401  (first: the OpenMP and allocator settings precede torch, as in the CLI)
+
+import ast
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+
+@dataclass
+class StepsConfig:
+    data: tyro.conf.Positional[Path]
+    """Dataset (any supported format)."""
+    options: "tuple[str, ...]" = ()
+    """Model options ``NAME=VALUE`` (Python literals), e.g. ``step_ratio=1.0`` or ``occupancy.update_every=32``."""
+    preset: str = "small"
+    """Capacity preset of the fast model."""
+    marks: "tuple[int, ...]" = (100, 200, 300)
+    """Steps at which to validate."""
+    eval_views: int = 10
+    threads: int = 2
+    rays_per_step: int = 4096
+    seed: int = 0
+    name: str = ""
+    """Label of the JSON lines (default: the options)."""
+    log: "Path | None" = None
+    """Append the JSON lines to this file."""
+
+
+def model_config(preset: str, options: "tuple[str, ...]"):
+    from nerfpipe.estimators.occupancy import OccupancyGridConfig
+    from nerfpipe.models.fast import FastConfig
+
+    values = {k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in options)}
+    occ = {k.split(".", 1)[1]: values.pop(k) for k in list(values) if k.startswith("occupancy.")}
+    return FastConfig(preset=preset, occupancy=OccupancyGridConfig(**occ), **values)
+
+
+def main(cfg: StepsConfig) -> "list[dict]":
+    from data_adapters import load
+
+    from nerfpipe import evaluation, runtime
+    from nerfpipe.trainer import Trainer, TrainerConfig
+
+    torch.set_num_threads(cfg.threads)
+    scene = load(cfg.data)
+    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed)
+    rows, wall, cpu = [], 0.0, 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(tcfg, scene, "fast", model_config(cfg.preset, cfg.options), Path(tmp))
+        trainer.model.train()
+        for mark in cfg.marks:
+            while trainer.step < mark:
+                w0, c0 = time.perf_counter(), time.process_time()
+                trainer.train_step()
+                wall, cpu = wall + time.perf_counter() - w0, cpu + time.process_time() - c0
+            psnr, _ = evaluation.validate(trainer, cfg.eval_views)
+            rows.append(dict(name=cfg.name or " ".join(cfg.options) or "default", step=mark, wall=round(wall, 3),
+                             cpu=round(cpu / cfg.threads, 3), psnr=round(psnr, 3), samples_per_ray=round(trainer.model.stats()["samples_per_ray"], 2),
+                             load=round(os.getloadavg()[0], 2), omp_wait=runtime.OMP_WAIT))
+            print(json.dumps(rows[-1]), flush=True)
+    if cfg.log is not None:
+        with open(cfg.log, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main(tyro.cli(StepsConfig))
