@@ -13,7 +13,7 @@ samples per ray, and stops each ray once it is opaque (early ray termination).
 Glossary:
     aabb        ``[2, 3]`` scene box ``[min, max]``
     cell        one of ``res^3`` boxes the aabb is cut into; cell ``(i, j, k)`` is row ``(i*res + j)*res + k``
-    coarse cell ``skip_factor^3`` cells; occupied when any of them or of its 26 neighbours' cells is
+    coarse cell ``skip_factor^3`` cells; counts as occupied when one of its cells or of its 26 neighbours' cells is
     span        per ray, the interval numbers ``first..last`` that can meet an occupied cell
     step_size   distance between consecutive samples along a ray (world units)
     packed      samples of all rays back to back, ``ray_indices`` giving each sample's ray
