@@ -15,8 +15,7 @@ import zlib  # noqa: F401  (import-order guard, see above)
 # by glibc's allocator (both measured and explained in nerfpipe/runtime.py).
 from nerfpipe import runtime  # noqa: E402
 
-runtime.OMP_WAIT = runtime.choose_omp_wait_policy()
-runtime.keep_freed_memory()
+runtime.apply()
 
 from nerfpipe.cameras import Cameras, invert_rigid, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError

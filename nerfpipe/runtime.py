@@ -57,6 +57,13 @@ OMP_WAIT = "unset"
 """What :func:`choose_omp_wait_policy` decided at import: ``spin`` (GOMP's default), ``passive`` or ``user``."""
 
 
+def apply() -> None:
+    """Both settings, as ``import nerfpipe`` applies them (before torch loads OpenMP)."""
+    global OMP_WAIT
+    OMP_WAIT = choose_omp_wait_policy()
+    keep_freed_memory()
+
+
 def choose_omp_wait_policy(environ: "dict | None" = None, busy: "float | None" = None, cpus: "int | None" = None) -> str:
     """Set ``OMP_WAIT_POLICY=PASSIVE`` when other processes keep at least half of the CPUs busy (see
     the module docstring); returns ``user`` (an explicit setting was kept), ``passive`` or ``spin``.

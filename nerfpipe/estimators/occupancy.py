@@ -129,10 +129,15 @@ class OccupancyGrid(nn.Module):
     def cell_index(self, points: Float[Tensor, "num_points 3"]) -> "tuple[Int[Tensor, 'num_points'], Bool[Tensor, 'num_points']]":
         """Cell row of each point and whether the point is inside the box."""
         r = self.cfg.resolution
+        ijk, inside = self._cell_ijk(points)
+        return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], inside
+
+    def _cell_ijk(self, points: Float[Tensor, "*bs 3"]) -> "tuple[Int[Tensor, '*bs 3'], Bool[Tensor, '*bs']]":
+        """Cell of each point (points outside the box clamped to the nearest cell) and whether it is inside."""
+        r = self.cfg.resolution
         x01 = (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
         inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
-        ijk = (x01 * r).long().clamp(0, r - 1)
-        return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], inside
+        return (x01 * r).long().clamp(0, r - 1), inside
 
     def occupied(self, points: Float[Tensor, "num_points 3"]) -> Bool[Tensor, "num_points"]:
         """Whether each point lies in an occupied cell (points outside the box are empty)."""
@@ -222,8 +227,7 @@ class OccupancyGrid(nn.Module):
         """
         coarse, rc = self._coarse()
         r, f = self.cfg.resolution, self.cfg.skip_factor
-        ext = self.aabb[1] - self.aabb[0]
-        h = float((ext / r).min()) * f
+        h = float(((self.aabb[1] - self.aabb[0]) / r).min()) * f
         n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0).long()
         n_max = max(int(n.max()), 1)
         j = torch.arange(n_max, device=n.device)
@@ -232,7 +236,7 @@ class OccupancyGrid(nn.Module):
             rows = slice(s, s + max(1, chunk // n_max))
             t = lim.t0[rows, None] + (j + 0.5).to(lim.t0.dtype) * h
             pts = lim.origins[rows, None, :] + t[..., None] * lim.directions[rows, None, :]
-            ijk = torch.div(((pts - self.aabb[0]) / ext * r).floor().clamp(0, r - 1).long(), f, rounding_mode="floor")
+            ijk = self._cell_ijk(pts)[0] // f  # points outside the box count in the nearest coarse cell
             hit = coarse[(ijk[..., 0] * rc + ijk[..., 1]) * rc + ijk[..., 2]] & (j < n[rows, None])
             j_first.append(hit.byte().argmax(dim=1))
             j_last.append(n_max - 1 - hit.flip(1).byte().argmax(dim=1))

@@ -3,9 +3,10 @@
 Only what the scene needs is modelled and evaluated: the field lives in the scene box (tightened
 to the occupied cells once training has found them), rays are marched only through occupied
 cells with a step tied to the grid resolution (a coarser, dilated copy of the occupancy first bounds
-the span of each ray worth marching; the sampling starts at one voxel and halves later), a cheap density-only pass finds where each ray's
-transmittance has run out (in rounds of a few samples per ray, so nothing behind an opaque surface
-is marched or evaluated), and the colour pass runs on the samples that matter (packed, no padding).
+the span of each ray worth marching; the sampling starts at one voxel and halves later), a cheap
+density-only pass finds where each ray's transmittance has run out (in rounds of a few samples per
+ray, so nothing behind an opaque surface is marched or evaluated), and the colour pass runs on the
+samples that matter (packed, no padding).
 
 Glossary:
     step_size   distance between samples along rays: ``step_ratio`` of the finest voxel
