@@ -19,7 +19,8 @@ from collections.abc import Callable
 
 import torch
 
-from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples
+from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ray_aabb_intersect
+from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
 from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, prune_mask, render_weights_packed
@@ -92,6 +93,18 @@ class FastConfig:
     learned_background: "bool | None" = None
     """Learn the colour behind the box per viewing direction (default: for scenes without alpha, where
     the photographs show more than the box, e.g. COLMAP captures); otherwise the trainer's background."""
+    background_field: "bool | None" = None
+    """Model what lies outside the box with a coarse field in contracted space (default: for scenes
+    without alpha, like ``learned_background``); it is rendered behind the box, so the box need not
+    explain floor, walls and sky with fog."""
+    behind: BackgroundFieldConfig = field(default_factory=BackgroundFieldConfig)
+    """The field behind the box (when ``background_field``)."""
+    appearance: "bool | None" = None
+    """Per-image colour correction (an affine map of RGB per training image, zero-mean over the images,
+    so evaluation and novel views use the mean: the identity). Default: for scenes without alpha
+    (photographs with varying exposure and white balance)."""
+    appearance_lr: float = 1e-3
+    """Adam learning rate of the per-image colour corrections."""
     distortion_weight: float = 0.0
     """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
     tv_weight: float = 0.0
@@ -131,6 +144,11 @@ class FastModel(Model):
         self.register_buffer("march_box", aabb.clone())
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head() if learn_bg else None
+        real = not info.has_alpha
+        use_behind = real if cfg.background_field is None else cfg.background_field
+        self.behind = BackgroundField(cfg.behind, aabb) if use_behind else None
+        use_app = real if cfg.appearance is None else cfg.appearance
+        self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
         self._samples_per_ray = 0.0
 
     @staticmethod
@@ -201,6 +219,8 @@ class FastModel(Model):
         dir_code = direction_encoding(flat.directions)
         if self.background is not None:
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
+        if self.behind is not None:
+            bg = self.behind(flat.origins, flat.directions, dir_code, self._behind_start(flat), bg).rgb
         samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
@@ -210,6 +230,8 @@ class FastModel(Model):
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
         rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
+        if self.training and self.appearance is not None:
+            rgb = self._corrected(rgb, flat.cam_idx)
         if self.training:
             self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
         extras = {}
@@ -221,6 +243,18 @@ class FastModel(Model):
             rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape),
             num_samples=len(samples), extras=extras,
         )
+
+    def _behind_start(self, rays: RayBundle) -> Float[Tensor, "num_rays"]:
+        """Where each ray leaves the object region (rays that miss it: the near bound)."""
+        t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.behind.aabb)
+        return torch.where(t_out >= t_in, t_out, torch.zeros_like(t_out)).clamp(min=self.info.near)
+
+    def _corrected(self, rgb: Float[Tensor, "num_rays 3"], cam_idx) -> Float[Tensor, "num_rays 3"]:
+        """Training colours through their image's affine correction (codes zero-mean over images)."""
+        codes = self.appearance - self.appearance.mean(0, keepdim=True)
+        p = codes[cam_idx.reshape(-1)]
+        matrix = p[:, :9].view(-1, 3, 3) + torch.eye(3, device=rgb.device, dtype=rgb.dtype)
+        return (matrix @ rgb[:, :, None])[:, :, 0] + p[:, 9:]
 
     def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
         losses = {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
@@ -289,6 +323,11 @@ class FastModel(Model):
         ]
         if self.background is not None:
             groups[1]["params"] += list(self.background.parameters())
+        if self.behind is not None:
+            groups[0]["params"] += list(self.behind.density_grid.parameters()) + list(self.behind.feature_grid.parameters())
+            groups[1]["params"] += list(self.behind.mlp.parameters())
+        if self.appearance is not None:
+            groups.append({"params": [self.appearance], "lr": self.cfg.appearance_lr, "eps": 1e-15})
         return groups
 
     def stats(self) -> "dict[str, float]":

@@ -1,0 +1,115 @@
+"""The field outside the object region: coarse grids over contracted space, rendered behind the box.
+
+Real captures show floor, walls and sky around the object. Without a place for them, the object's
+field explains them as fog inside its box. This field models them where they are, at a resolution
+that falls with distance: points outside the box are contracted into ``[-2, 2]^3``
+(:func:`nerfpipe.functional.contraction.contract`) and read from small dense grids there; each ray
+gets a fixed number of samples from where it leaves the box to far away, spaced uniformly in
+disparity (as NeRF++'s outer volume and mip-NeRF 360's contracted space).
+
+Rendered alone, it gives for each ray the colour seen behind the box and that colour's opacity;
+the object's field composites over it (``rgb_inner + (1 - acc_inner) * rgb_behind``).
+"""
+
+from dataclasses import dataclass
+
+import math
+
+import torch
+from torch import nn
+
+from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear_corners
+from nerfpipe.functional.contraction import contract, disparity_samples, to_box_coordinates
+from nerfpipe.functional.volrend import render_weights
+from nerfpipe.typing import Float, Tensor
+
+
+@dataclass
+class BackgroundFieldConfig:
+    """The contracted field behind the object region (``fast`` model, real captures)."""
+
+    levels: "tuple[int, ...]" = (32, 64, 128)
+    """Vertices per axis of each grid level over the contracted cube ``[-2, 2]^3``."""
+    feature_channels: int = 2
+    """Colour features per vertex and level."""
+    hidden: int = 32
+    """Width of the colour MLP."""
+    num_samples: int = 24
+    """Samples per ray from the box exit to ``far_factor`` box sizes away (uniform in disparity)."""
+    far_factor: float = 1000.0
+    """Where the samples end, in box diagonals from the box centre."""
+    init_density: float = 0.01
+    """Density everywhere at the start (in world units; low: the background starts empty)."""
+
+
+@dataclass
+class BehindBox:
+    """What lies behind the box along each ray."""
+
+    rgb: Float[Tensor, "num_rays 3"]
+    """Colour composited over the given background."""
+    acc: Float[Tensor, "num_rays"]
+    """Opacity of the background field along the ray (the rest is the given background)."""
+    depth: Float[Tensor, "num_rays"]
+    """Expected distance ``sum w_i t_i`` of the background field's samples."""
+
+
+class BackgroundField(nn.Module):
+    """Density and colour over contracted space outside ``aabb``.
+
+    Args:
+        cfg: sizes and sampling.
+        aabb: the object region ``[min, max]`` (maps to ``[-1, 1]^3`` before contraction).
+    """
+
+    def __init__(self, cfg: BackgroundFieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("aabb", aabb.detach().clone().float())
+        resolutions = [(n, n, n) for n in cfg.levels]
+        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
+        self.feature_grid = DenseGridEncoding(resolutions, cfg.feature_channels)
+        self.shift = math.log(math.expm1(cfg.init_density))
+        self.mlp = nn.Sequential(
+            nn.Linear(self.feature_grid.out_dim + 16, cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
+        )
+
+    @property
+    def t_far(self) -> float:
+        return self.cfg.far_factor * float((self.aabb[1] - self.aabb[0]).norm())
+
+    def _corners(self, points: Float[Tensor, "num_points 3"]) -> list:
+        x01 = 0.25 * (contract(to_box_coordinates(points, self.aabb)) + 2.0)
+        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions]
+
+    def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
+        raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(self.density_grid.tables, self._corners(points)))
+        return nn.functional.softplus(raw[:, 0] + self.shift)
+
+    def forward(
+        self,
+        origins: Float[Tensor, "num_rays 3"],
+        directions: Float[Tensor, "num_rays 3"],
+        dir_code: Float[Tensor, "num_rays 16"],
+        t_start: Float[Tensor, "num_rays"],
+        background: Float[Tensor, "num_rays 3"],
+        generator: "torch.Generator | None" = None,
+    ) -> BehindBox:
+        """Render the field along each ray from ``t_start`` on, composited over ``background``.
+
+        In training (``self.training``) the samples are stratified (random inside their intervals).
+        """
+        n, s = origins.shape[0], self.cfg.num_samples
+        jitter = torch.rand((n, s), device=origins.device, generator=generator) if self.training else None
+        t, deltas = disparity_samples(t_start, self.t_far, s, jitter)
+        points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
+        corners = self._corners(points)
+        raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.density_grid.tables, corners))
+        sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
+        feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
+        h = torch.cat(feats + [dir_code.repeat_interleave(s, dim=0)], dim=-1)
+        rgbs = torch.sigmoid(self.mlp(h)).view(n, s, 3)
+        weights, _ = render_weights(sigma, deltas)
+        acc = weights.sum(-1)
+        rgb = (weights[..., None] * rgbs).sum(-2) + (1.0 - acc)[:, None] * background
+        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1))

@@ -1,0 +1,132 @@
+"""Unbounded real captures: scene contraction against its per-point reference, disparity samples,
+the field behind the box (renders, learns, leaves the box's own rendering alone where it is opaque),
+and the per-image colour corrections (zero-mean, identity at evaluation)."""
+
+import torch
+
+from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
+from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
+from nerfpipe.models.base import SceneInfo
+from nerfpipe.models.fast import FastConfig
+from nerfpipe.rays import RayBundle
+
+
+def test_contract_matches_reference_and_bounds(dtype, device, tol):
+    g = torch.Generator().manual_seed(0)
+    x = (torch.randn(500, 3, generator=g, dtype=dtype) * torch.logspace(-1, 4, 500, dtype=dtype)[:, None]).to(device)
+    y = contract(x)
+    torch.testing.assert_close(y, _contract_reference(x), **tol(dtype))
+    inside = x.abs().amax(-1) <= 1
+    torch.testing.assert_close(y[inside], x[inside])  # identity in the box
+    assert bool((y.abs().amax(-1) < 2.0 + 1e-6).all())  # all of space inside [-2, 2]^3
+    # monotonic along rays from the centre: farther points stay farther
+    r = torch.linspace(0.1, 1e5, 1000, dtype=dtype, device=device)[:, None] * torch.tensor([0.3, -0.5, 0.8], dtype=dtype, device=device)
+    n = contract(r).abs().amax(-1)
+    assert bool((n[1:] >= n[:-1] - 1e-6).all())
+
+
+def test_contract_gradcheck_float64():
+    x = torch.tensor([[0.2, -0.3, 0.1], [3.0, 1.0, -2.0], [-0.5, 7.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(contract, (x,))
+
+
+def test_to_box_coordinates_maps_box_to_unit_cube():
+    aabb = torch.tensor([[-1.0, 0.0, 2.0], [3.0, 1.0, 4.0]])
+    assert to_box_coordinates(aabb, aabb).tolist() == [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+
+
+def test_disparity_samples_tile_the_span():
+    t0 = torch.tensor([1.0, 2.5])
+    jitter = torch.rand(2, 16, generator=torch.Generator().manual_seed(1))
+    t, d = disparity_samples(t0, 1e4, 16, jitter)
+    torch.testing.assert_close(d.sum(-1), 1e4 - t0)  # the intervals tile [t_start, t_far]
+    starts = t0[:, None] + torch.cat([torch.zeros(2, 1), d.cumsum(-1)[:, :-1]], dim=-1)
+    assert bool(((t >= starts) & (t <= starts + d)).all())  # each sample inside its interval
+    inv = 1.0 / (starts + d)  # interval ends are evenly spaced in disparity
+    steps = torch.cat([1.0 / t0[:, None], inv], dim=-1).diff(dim=-1)
+    torch.testing.assert_close(steps, steps[:, :1].expand_as(steps))
+
+
+def _rays(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.tensor([0.0, 0.0, 4.0]).expand(n, 3).clone()
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -1.0]), dim=-1)
+    return RayBundle(origins=o, directions=d, cam_idx=torch.randint(0, 4, (n,), generator=g), z_scale=torch.ones(n))
+
+
+def test_background_field_learns_a_wall_behind_the_box():
+    """A wall of one colour at z = -6 (behind the box [-1, 1]^3) is learned, and its depth found."""
+    torch.manual_seed(0)
+    field = BackgroundField(BackgroundFieldConfig(levels=(16, 32), num_samples=32), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    from nerfpipe.fields.fast_field import direction_encoding
+    from nerfpipe.estimators.occupancy import ray_aabb_intersect
+
+    opt = torch.optim.Adam([{"params": field.density_grid.parameters(), "lr": 0.5}, {"params": field.mlp.parameters(), "lr": 1e-2},
+                            {"params": field.feature_grid.parameters(), "lr": 0.5}])
+    target = torch.tensor([0.9, 0.2, 0.1])
+    for step in range(150):
+        rays = _rays(512, step)
+        t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
+        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(512, 3))
+        loss = ((out.rgb - target) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    field.eval()
+    rays = _rays(256, 999)
+    t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
+    with torch.no_grad():
+        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(256, 3))
+    assert float((out.rgb - target).abs().max()) < 0.05
+    assert float(out.acc.mean()) > 0.95
+
+
+def _model(num_images=4, **kw):
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=num_images, pixels_per_image=100)
+    return FastConfig(preset="small", **kw).setup(info)
+
+
+def test_real_capture_defaults_and_synthetic_defaults():
+    info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100)
+    real = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=False))
+    synthetic = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True))
+    assert real.behind is not None and real.appearance is not None
+    assert synthetic.behind is None and synthetic.appearance is None
+
+
+def test_appearance_codes_are_zero_mean_and_identity_in_evaluation():
+    model = _model()
+    with torch.no_grad():
+        model.appearance.normal_(0.0, 0.2)
+    rays = _rays(64)
+    model.eval()
+    with torch.no_grad():
+        evaluated = model.get_outputs(rays, torch.zeros(64, 3)).rgb
+        # the mean correction over the images is the identity: averaging the per-image colours gives back the plain render
+        per_image = [model._corrected(evaluated, torch.full((64,), i)) for i in range(4)]
+    torch.testing.assert_close(torch.stack(per_image).mean(0), evaluated, atol=1e-6, rtol=0)
+    assert float((per_image[0] - evaluated).abs().max()) > 1e-3  # and a single image's correction is not
+
+
+def test_appearance_absorbs_a_per_image_exposure():
+    """Two images of one grey scene, one 30 % darker: the codes learn the ratio, evaluation shows the mean."""
+    torch.manual_seed(0)
+    model = _model(num_images=2, appearance_lr=1e-2, background_field=False)
+    model.train()
+    opt = torch.optim.Adam(model.param_groups())
+    for step in range(120):
+        rays = _rays(256, step)
+        rays.cam_idx = torch.randint(0, 2, (256,), generator=torch.Generator().manual_seed(step))
+        gain = torch.where(rays.cam_idx == 0, 1.0, 0.7)[:, None]
+        target = 0.6 * gain * torch.ones(256, 3)
+        out = model.get_outputs(rays, torch.zeros(256, 3))
+        loss = sum(model.get_losses(out, target).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    rgb = model.get_outputs(_rays(64, 500), torch.zeros(64, 3)).rgb.detach()
+    c = model.appearance.detach() - model.appearance.detach().mean(0)
+    gains = [float(torch.eye(3)[0] @ (torch.eye(3) + c[i, :9].view(3, 3)) @ torch.ones(3) / 3 + c[i, 9]) for i in range(2)]
+    assert gains[1] < gains[0]  # the darker image got the darker correction
+    assert 0.42 + 0.03 < float(rgb.mean()) < 0.6 - 0.03  # evaluation shows the mean exposure, not one image's
