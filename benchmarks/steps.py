@@ -4,7 +4,7 @@ behind the default choices (PSNR at equal step counts is deterministic on CPU; s
 Run: ``python -m benchmarks.steps LEGO --options coarse_to_fine_every=32 mlp_lr=0.01 --marks 100 200 300``.
 Prints one JSON line per mark (step, cumulative training seconds, wall and CPU/threads, val PSNR over
 ``--eval-views`` views, mean samples per ray, load) and appends them to ``--log`` when given.
-``occupancy.NAME=VALUE`` sets an option of the occupancy grid.
+``occupancy.NAME=VALUE`` sets an option of the occupancy grid, ``behind.NAME=VALUE`` one of the field behind the box.
 """
 
 import nerfpipe  # noqa: F401  (first: the OpenMP and allocator settings precede torch, as in the CLI)
@@ -33,6 +33,10 @@ class StepsConfig:
     marks: "tuple[int, ...]" = (100, 200, 300)
     """Steps at which to validate."""
     eval_views: int = 10
+    eval_max_size: "int | None" = 400
+    """Longer side of validation renders at most (as ``nerfpipe run``'s train stage)."""
+    track_rays: int = 512
+    """Rays per step through sparse points (scenes with tracks)."""
     threads: int = 2
     rays_per_step: int = 4096
     seed: int = 0
@@ -46,9 +50,12 @@ def model_config(preset: str, options: "tuple[str, ...]"):
     from nerfpipe.estimators.occupancy import OccupancyGridConfig
     from nerfpipe.models.fast import FastConfig
 
+    from nerfpipe.fields.background import BackgroundFieldConfig
+
     values = {k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in options)}
     occ = {k.split(".", 1)[1]: values.pop(k) for k in list(values) if k.startswith("occupancy.")}
-    return FastConfig(preset=preset, occupancy=OccupancyGridConfig(**occ), **values)
+    behind = {k.split(".", 1)[1]: values.pop(k) for k in list(values) if k.startswith("behind.")}
+    return FastConfig(preset=preset, occupancy=OccupancyGridConfig(**occ), behind=BackgroundFieldConfig(**behind), **values)
 
 
 def main(cfg: StepsConfig) -> "list[dict]":
@@ -59,7 +66,8 @@ def main(cfg: StepsConfig) -> "list[dict]":
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
-    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed)
+    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
+                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
     rows, wall, cpu = [], 0.0, 0.0
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(tcfg, scene, "fast", model_config(cfg.preset, cfg.options), Path(tmp))

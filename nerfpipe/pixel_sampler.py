@@ -54,21 +54,85 @@ class PixelBatch:
     rays: RayBundle
     rgb: Float[Tensor, "num_rays 3"]
     background: Float[Tensor, "num_rays 3"]
+    depth: "Float[Tensor, 'num_rays'] | None" = None
+    """Distance along the ray at which a sparse 3D point was seen (NaN for rays without one); None
+    when the batch has no such rays."""
+
+
+class TrackRays:
+    """Rays through the keypoints of the sparse points' track observations (COLMAP), with the distance
+    of the observed point along each ray and the keypoint's pixel colour.
+
+    This is the evidence SfM already has about where rays stop (as in DS-NeRF): the space in front
+    of each observed point is empty. Uses ``scene.meta["observations"]`` (``cam_idx``, ``xy``,
+    ``point_idx``; see :mod:`data_adapters.colmap`); observations of cameras outside the split, with
+    keypoints outside the image or points behind the camera are dropped.
+    """
+
+    def __init__(self, scene: SceneData, split: str, pixels: UInt8[Tensor, "P C"], offsets: Tensor) -> None:
+        obs = scene.meta["observations"]
+        local = torch.full((len(scene.cameras),), -1, dtype=torch.long)
+        local[torch.as_tensor(scene.splits[split], dtype=torch.long)] = torch.arange(len(scene.splits[split]))
+        cam = local[torch.as_tensor(obs["cam_idx"], dtype=torch.long)]
+        uv = torch.as_tensor(obs["xy"], dtype=torch.float64)
+        xyz = scene.points.xyz.double()[torch.as_tensor(obs["point_idx"], dtype=torch.long)]
+        cameras = scene.split_cameras(split)
+        keep = cam >= 0
+        cam, uv, xyz = cam[keep], uv[keep], xyz[keep]
+        w, h = cameras.width[cam].double(), cameras.height[cam].double()
+        inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
+        cam, uv, xyz = cam[inside], uv[inside], xyz[inside]
+        rays = generate_rays(cameras, cam, uv.to(cameras.fx.dtype))
+        t = ((xyz.to(rays.origins) - rays.origins) * rays.directions).sum(-1)
+        front = t > 0
+        self.rays = rays[front].to(dtype=torch.float32)
+        self.t = t[front].float()
+        col, row = uv[front, 0].long(), uv[front, 1].long()
+        cam = cam[front]
+        self.pixels = pixels[offsets[cam] + row * cameras.width[cam].long() + col]
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def sample(self, num_rays: int, generator: "torch.Generator | None") -> "tuple[RayBundle, Tensor, Tensor]":
+        """``(rays, uint8 pixels, distances)`` of ``num_rays`` observations drawn uniformly."""
+        i = torch.randint(len(self), (num_rays,), generator=generator)
+        return self.rays[i], self.pixels[i], self.t[i]
 
 
 class PixelSampler:
     """Uniform random pixels across every image of a split."""
 
-    def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu") -> None:
+    def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu", track_rays: int = 0) -> None:
         self.cameras = scene.split_cameras(split).to(device)
         self.pixels, self.offsets = load_split_pixels(scene, split)
         self.background = background
         self.device = torch.device(device)
+        has_tracks = scene.points is not None and "observations" in scene.meta
+        self.tracks = TrackRays(scene, split, self.pixels, self.offsets) if track_rays and has_tracks else None
+        self.track_rays = track_rays if self.tracks is not None and len(self.tracks) else 0
+        """Rays per batch through sparse points (the rest are uniform pixels)."""
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
 
     def sample(self, num_rays: int, generator: "torch.Generator | None" = None) -> PixelBatch:
+        """``num_rays`` rays: uniform pixels, and ``track_rays`` of them through sparse points."""
+        k = min(self.track_rays, num_rays // 2)
+        batch = self._uniform(num_rays - k, generator)
+        if not k:
+            return batch
+        rays, pixels, t = self.tracks.sample(k, generator)
+        bg = background_colors(self.background, k, generator)
+        nan = torch.full((num_rays - k,), float("nan"))
+        return PixelBatch(
+            rays=_cat_rays(batch.rays, rays.to(self.device)),
+            rgb=torch.cat([batch.rgb, composite_pixels(pixels, bg).to(self.device)]),
+            background=torch.cat([batch.background, bg.to(self.device)]),
+            depth=torch.cat([nan, t]).to(self.device),
+        )
+
+    def _uniform(self, num_rays: int, generator: "torch.Generator | None") -> PixelBatch:
         idx = torch.randint(len(self), (num_rays,), generator=generator)
         cam = torch.searchsorted(self.offsets, idx, right=True) - 1
         local = idx - self.offsets[cam]
@@ -78,3 +142,10 @@ class PixelSampler:
         rgb = composite_pixels(self.pixels[idx], bg)
         rays = generate_rays(self.cameras, cam.to(self.device), uv.to(self.device))
         return PixelBatch(rays=rays, rgb=rgb.to(self.device), background=bg.to(self.device))
+
+
+def _cat_rays(a: RayBundle, b: RayBundle) -> RayBundle:
+    return RayBundle(
+        origins=torch.cat([a.origins, b.origins]), directions=torch.cat([a.directions, b.directions]),
+        cam_idx=torch.cat([a.cam_idx, b.cam_idx]), z_scale=torch.cat([a.z_scale, b.z_scale]),
+    )

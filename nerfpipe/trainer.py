@@ -38,6 +38,10 @@ class TrainerConfig:
     seconds divided by the torch threads; steadier on a shared machine)."""
     rays_per_step: int = 10000
     """Rays per iteration, drawn uniformly from all pixels of all training images."""
+    track_rays: int = 512
+    """Rays per iteration (of ``rays_per_step``) through the sparse points' track observations, when the
+    scene has them (COLMAP): their colour and the distance of the point along them, for models with a
+    depth loss (0: uniform pixels only)."""
     lr: float = 5e-4
     """Adam learning rate (models may set their own per parameter group)."""
     eval_every: int = 100
@@ -117,7 +121,7 @@ class Trainer:
         for group in self.optimizer.param_groups:  # the schedule scales these (saved with the optimiser)
             group.setdefault("initial_lr", group["lr"])
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device)
+        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=cfg.track_rays)
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
@@ -165,7 +169,7 @@ class Trainer:
         self.apply_lr()
         batch = self.sampler.sample(self.cfg.rays_per_step, self.generator)
         outputs = self.model.get_outputs(batch.rays, batch.background)
-        losses = self.model.get_losses(outputs, batch.rgb)
+        losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
         self.optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
         drop_stale_optimizer_state(self.optimizer)

@@ -130,3 +130,44 @@ def test_appearance_absorbs_a_per_image_exposure():
     gains = [float(torch.eye(3)[0] @ (torch.eye(3) + c[i, :9].view(3, 3)) @ torch.ones(3) / 3 + c[i, 9]) for i in range(2)]
     assert gains[1] < gains[0]  # the darker image got the darker correction
     assert 0.42 + 0.03 < float(rgb.mean()) < 0.6 - 0.03  # evaluation shows the mean exposure, not one image's
+
+
+def test_track_rays_pass_through_their_points(scene_path):
+    """Rays through COLMAP keypoints of colmap_mouse pass by their 3D points at the reprojection error."""
+    from data_adapters import load
+    from nerfpipe.pixel_sampler import PixelSampler
+
+    scene = load(scene_path("colmap_mouse"))
+    sampler = PixelSampler(scene, "train", "black", track_rays=256)
+    tracks = sampler.tracks
+    obs = scene.meta["observations"]
+    assert 0.8 * len(obs["cam_idx"]) * len(scene.splits["train"]) / len(scene.cameras) < len(tracks) <= len(obs["cam_idx"])
+    batch = sampler.sample(1024, torch.Generator().manual_seed(0))
+    depth = batch.depth
+    assert int(torch.isnan(depth).sum()) == 1024 - 256 and bool((depth[-256:] > 0).all())
+    # the point at distance t along each track ray is within ~2 px (angle) of a sparse point
+    pts = batch.rays.origins[-256:] + depth[-256:, None] * batch.rays.directions[-256:]
+    d = torch.cdist(pts.double(), scene.points.xyz.double()).amin(dim=1) / depth[-256:].double()
+    assert float(d.median()) < 1.5 / 1400  # focal length ~1400 px
+
+
+def test_depth_loss_rewards_stopping_at_the_point_and_punishes_fog():
+    model = _model(background_field=False)
+    t = torch.linspace(0.5, 5.0, 100)
+    target = torch.tensor([3.0, 3.0, float("nan")])
+    eps = model.cfg.depth_tolerance * float((model.object_box[1] - model.object_box[0]).norm())
+
+    def loss(w0, w1):
+        w = torch.cat([w0, w1, torch.zeros(100)])
+        extras = dict(weights=w, t_mids=t.repeat(3), ray_indices=torch.arange(3).repeat_interleave(100), t_exit=torch.full((3,), 4.0))
+        return float(model._depth_loss(extras, target))
+
+    at_point = torch.where((t - 3.0).abs() <= eps, 1.0, 0.0)
+    at_point = at_point / at_point.sum()
+    fog = torch.full((100,), 1.0 / 100)
+    assert loss(at_point, at_point) == 0.0
+    assert loss(fog, fog) > 0.9  # 44 % in front, 2 % in the window
+    behind_box = torch.tensor([3.0, 4.5, float("nan")])  # a point outside the box: only the space in front counts
+    w = torch.cat([torch.zeros(100), torch.zeros(100), torch.zeros(100)])
+    extras = dict(weights=w, t_mids=t.repeat(3), ray_indices=torch.arange(3).repeat_interleave(100), t_exit=torch.full((3,), 4.0))
+    assert float(model._depth_loss(extras, behind_box)) == 0.5  # ray 0 must stop at 3 and does not; ray 1 is free

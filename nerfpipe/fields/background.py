@@ -28,7 +28,7 @@ from nerfpipe.typing import Float, Tensor
 class BackgroundFieldConfig:
     """The contracted field behind the object region (``fast`` model, real captures)."""
 
-    levels: "tuple[int, ...]" = (32, 64, 128)
+    levels: "tuple[int, ...]" = (16, 32, 64)
     """Vertices per axis of each grid level over the contracted cube ``[-2, 2]^3``."""
     feature_channels: int = 2
     """Colour features per vertex and level."""
@@ -38,8 +38,15 @@ class BackgroundFieldConfig:
     """Samples per ray from the box exit to ``far_factor`` box sizes away (uniform in disparity)."""
     far_factor: float = 1000.0
     """Where the samples end, in box diagonals from the box centre."""
+    view_dependent: bool = False
+    """Colour depends on the viewing direction (off: a coarse field seen from few directions per point
+    would fit each photograph's view of it on its own and show streaks in between)."""
+    grid_lr: float = 0.1
+    """Adam learning rate of its grids."""
     init_density: float = 0.01
-    """Density everywhere at the start (in world units; low: the background starts empty)."""
+    """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
+    to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and
+    the colour at infinity (the model's direction-only background) shows through."""
 
 
 @dataclass
@@ -71,7 +78,7 @@ class BackgroundField(nn.Module):
         self.feature_grid = DenseGridEncoding(resolutions, cfg.feature_channels)
         self.shift = math.log(math.expm1(cfg.init_density))
         self.mlp = nn.Sequential(
-            nn.Linear(self.feature_grid.out_dim + 16, cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
+            nn.Linear(self.feature_grid.out_dim + (16 if cfg.view_dependent else 0), cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
         )
 
     @property
@@ -81,6 +88,13 @@ class BackgroundField(nn.Module):
     def _corners(self, points: Float[Tensor, "num_points 3"]) -> list:
         x01 = 0.25 * (contract(to_box_coordinates(points, self.aabb)) + 2.0)
         return [trilinear_corners(x01, r) for r in self.density_grid.resolutions]
+
+    def _contracted_lengths(self, origins, directions, t_start, deltas) -> Float[Tensor, "num_rays num_samples"]:
+        """Lengths of the sample intervals in contracted space (chords between their contracted ends)."""
+        ends = torch.cat([t_start[:, None], t_start[:, None] + deltas.cumsum(-1)], dim=-1)
+        pts = origins[:, None, :] + ends[..., None] * directions[:, None, :]
+        c = contract(to_box_coordinates(pts, self.aabb))
+        return (c[:, 1:] - c[:, :-1]).norm(dim=-1)
 
     def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
         raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(self.density_grid.tables, self._corners(points)))
@@ -102,12 +116,15 @@ class BackgroundField(nn.Module):
         n, s = origins.shape[0], self.cfg.num_samples
         jitter = torch.rand((n, s), device=origins.device, generator=generator) if self.training else None
         t, deltas = disparity_samples(t_start, self.t_far, s, jitter)
+        deltas = self._contracted_lengths(origins, directions, t_start, deltas)
         points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
         corners = self._corners(points)
         raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.density_grid.tables, corners))
         sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
         feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
-        h = torch.cat(feats + [dir_code.repeat_interleave(s, dim=0)], dim=-1)
+        if self.cfg.view_dependent:
+            feats.append(dir_code.repeat_interleave(s, dim=0))
+        h = torch.cat(feats, dim=-1)
         rgbs = torch.sigmoid(self.mlp(h)).view(n, s, 3)
         weights, _ = render_weights(sigma, deltas)
         acc = weights.sum(-1)

@@ -71,8 +71,13 @@ class Model(nn.Module):
         """Colour at world points seen along ``directions`` (for mesh vertex colours)."""
         raise NotImplementedError
 
-    def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
-        """Loss terms; the trainer sums them. Default: MSE on colour."""
+    def get_losses(
+        self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"], target_depth: "Float[Tensor, '*bs'] | None" = None
+    ) -> "dict[str, Tensor]":
+        """Loss terms; the trainer sums them. Default: MSE on colour.
+
+        ``target_depth`` is the distance along each ray of a sparse point seen through it (NaN where
+        none; None when the batch has none); models that do not use it ignore it."""
         return {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
 
     def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":

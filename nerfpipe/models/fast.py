@@ -23,7 +23,7 @@ from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ra
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
-from nerfpipe.functional.packed import composite_packed, distortion_loss_packed, prune_mask, render_weights_packed
+from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, render_weights_packed
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
 from nerfpipe.rays import RayBundle
 from nerfpipe.typing import Float, Tensor
@@ -99,12 +99,23 @@ class FastConfig:
     explain floor, walls and sky with fog."""
     behind: BackgroundFieldConfig = field(default_factory=BackgroundFieldConfig)
     """The field behind the box (when ``background_field``)."""
+    behind_from: int = 256
+    """Training step from which the field behind the box is rendered: the box's own field first explains
+    what it can (a coarse field behind it would otherwise paint near geometry on the far shell, and
+    the occupancy grid would then cull it from the box for good)."""
     appearance: "bool | None" = None
     """Per-image colour correction (an affine map of RGB per training image, zero-mean over the images,
     so evaluation and novel views use the mean: the identity). Default: for scenes without alpha
     (photographs with varying exposure and white balance)."""
     appearance_lr: float = 1e-3
     """Adam learning rate of the per-image colour corrections."""
+    depth_weight: float = 0.1
+    """Weight of the sparse-point depth loss on rays through COLMAP track observations (the trainer's
+    ``track_rays``): no opacity in front of an observed point, and the ray stops near it when the point
+    lies in the object region (0 = off)."""
+    depth_tolerance: float = 0.01
+    """Half-width of the window around an observed point where its ray may stop, as a fraction of the
+    object region's diagonal."""
     distortion_weight: float = 0.0
     """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
     tv_weight: float = 0.0
@@ -147,6 +158,7 @@ class FastModel(Model):
         real = not info.has_alpha
         use_behind = real if cfg.background_field is None else cfg.background_field
         self.behind = BackgroundField(cfg.behind, aabb) if use_behind else None
+        self.register_buffer("object_box", aabb.clone(), persistent=False)
         use_app = real if cfg.appearance is None else cfg.appearance
         self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
         self._samples_per_ray = 0.0
@@ -219,8 +231,9 @@ class FastModel(Model):
         dir_code = direction_encoding(flat.directions)
         if self.background is not None:
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
-        if self.behind is not None:
-            bg = self.behind(flat.origins, flat.directions, dir_code, self._behind_start(flat), bg).rgb
+        t_exit = self._behind_start(flat)
+        if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
+            bg = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg).rgb
         samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
@@ -235,6 +248,8 @@ class FastModel(Model):
         if self.training:
             self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
         extras = {}
+        if self.training and self.cfg.depth_weight > 0:
+            extras.update(weights=weights, t_mids=t_mids, ray_indices=samples.ray_indices, t_exit=t_exit)
         if self.training and self.cfg.distortion_weight > 0:
             extras["distortion"] = distortion_loss_packed(
                 weights, samples.t_starts, samples.t_ends, samples.ray_indices, len(flat)
@@ -246,7 +261,7 @@ class FastModel(Model):
 
     def _behind_start(self, rays: RayBundle) -> Float[Tensor, "num_rays"]:
         """Where each ray leaves the object region (rays that miss it: the near bound)."""
-        t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.behind.aabb)
+        t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.object_box)
         return torch.where(t_out >= t_in, t_out, torch.zeros_like(t_out)).clamp(min=self.info.near)
 
     def _corrected(self, rgb: Float[Tensor, "num_rays 3"], cam_idx) -> Float[Tensor, "num_rays 3"]:
@@ -256,13 +271,34 @@ class FastModel(Model):
         matrix = p[:, :9].view(-1, 3, 3) + torch.eye(3, device=rgb.device, dtype=rgb.dtype)
         return (matrix @ rgb[:, :, None])[:, :, 0] + p[:, 9:]
 
-    def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
+    def get_losses(
+        self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"], target_depth: "Float[Tensor, '*bs'] | None" = None
+    ) -> "dict[str, Tensor]":
         losses = {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
+        if target_depth is not None and "weights" in outputs.extras:
+            losses["depth"] = self.cfg.depth_weight * self._depth_loss(outputs.extras, target_depth.reshape(-1))
         if "distortion" in outputs.extras:
             losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
         if self.cfg.tv_weight > 0 and self.training:
             losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16)
         return losses
+
+    def _depth_loss(self, extras: dict, target: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
+        """Mean over rays with a target of: the opacity in front of the observed point, plus, when the
+        point lies in the object region, the share of the ray not stopped within the tolerance of it."""
+        has = ~torch.isnan(target)
+        if not bool(has.any()):
+            return target.new_zeros(())
+        w, t, ri = extras["weights"], extras["t_mids"], extras["ray_indices"]
+        d = target.nan_to_num(0.0)
+        eps = self.cfg.depth_tolerance * float((self.object_box[1] - self.object_box[0]).norm())
+        d_s = d[ri]
+        front = w * (t < d_s - eps)
+        window = w * ((t - d_s).abs() <= eps)
+        sums = accumulate_packed(torch.stack([front, window], dim=-1), ri, len(target))
+        inside = (d < extras["t_exit"]).to(w.dtype)
+        per_ray = sums[:, 0] + inside * (1.0 - sums[:, 1])
+        return per_ray[has].mean()
 
     # ------------------------------------------------------------------ training hooks
     def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":
@@ -324,7 +360,8 @@ class FastModel(Model):
         if self.background is not None:
             groups[1]["params"] += list(self.background.parameters())
         if self.behind is not None:
-            groups[0]["params"] += list(self.behind.density_grid.parameters()) + list(self.behind.feature_grid.parameters())
+            behind_grids = list(self.behind.density_grid.parameters()) + list(self.behind.feature_grid.parameters())
+            groups.append({"params": behind_grids, "lr": self.cfg.behind.grid_lr, "eps": 1e-15})
             groups[1]["params"] += list(self.behind.mlp.parameters())
         if self.appearance is not None:
             groups.append({"params": [self.appearance], "lr": self.cfg.appearance_lr, "eps": 1e-15})

@@ -65,7 +65,9 @@ class VanillaModel(Model):
         n += edges_f.shape[-1] - 1
         return RenderOutputs(rgb=rgb_f, depth=depth_f, acc=acc_f, num_samples=n * rays.cam_idx.numel(), extras={"rgb_coarse": rgb})
 
-    def get_losses(self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"]) -> "dict[str, Tensor]":
+    def get_losses(
+        self, outputs: RenderOutputs, target_rgb: Float[Tensor, "*bs 3"], target_depth: "Float[Tensor, '*bs'] | None" = None
+    ) -> "dict[str, Tensor]":
         losses = {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
         if "rgb_coarse" in outputs.extras:
             losses["rgb_coarse"] = torch.mean((outputs.extras["rgb_coarse"] - target_rgb) ** 2)
