@@ -6,6 +6,7 @@ and scores PSNR and SSIM (kornia.metrics, 11-px Gaussian window) against the gro
 composited on the evaluation background.
 """
 
+import math
 from pathlib import Path
 
 import torch
@@ -40,6 +41,21 @@ def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
     return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, 11).mean())
 
 
+def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """PSNR on the right half of an image after an affine colour map (3x3 + offset) fitted by least squares
+    on its left half: how well a held-out view is predicted up to its own exposure and white balance
+    (the NeRF-W / nerfbaselines protocol for per-image appearance; the map is fitted on pixels not scored)."""
+    w = pred.shape[1] // 2
+    x = pred.reshape(pred.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
+    y = gt.to(pred.device).reshape(gt.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
+    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)
+    m = torch.linalg.lstsq(a, y).solution  # [4, 3]
+    right = pred[:, w:].reshape(-1, 3).double()
+    mapped = (torch.cat([right, torch.ones_like(right[:, :1])], dim=-1) @ m).clamp(0, 1)
+    mse = float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean())
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
 VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
 """Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
 
@@ -53,15 +69,18 @@ def validate(trainer, num_views: int) -> "tuple[float, float]":
     cams = scene.cameras[torch.tensor(idx)]
     sizes = [capped_size(int(w), int(h), cfg.eval_scale, cfg.eval_max_size) for w, h in zip(cams.width, cams.height)]
     bg = background_colors(trainer.eval_bg, 1)[0]
-    scores = []
+    scores, fitted = [], []
     for i, (w, h) in zip(range(len(idx)), sizes):
         view = render_cameras(trainer.model, resize_cameras(cams[i : i + 1], w, h).to(cfg.device), cfg.chunk, bg)[0]
-        scores.append(score(view.rgb, ground_truth(scene, idx[i], bg, (w, h))))
+        gt = ground_truth(scene, idx[i], bg, (w, h))
+        scores.append(score(view.rgb, gt))
+        fitted.append(fitted_colour_psnr(view.rgb, gt))
         if i == 0:
             save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(view.rgb))
     psnr = sum(s[0] for s in scores) / len(scores)
     ssim = sum(s[1] for s in scores) / len(scores)
     trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim, len(idx)])
+    trainer.last_fitted_psnr = sum(fitted) / len(fitted)
     return psnr, ssim
 
 
@@ -85,6 +104,7 @@ def finish(trainer) -> dict:
     metrics = {
         "val_psnr": psnr,
         "val_ssim": ssim,
+        "val_psnr_colour_fitted": trainer.last_fitted_psnr,
         "val_views": cfg.final_eval_views or len(trainer.scene.splits[eval_split(trainer.scene)]),
         "eval_scale": cfg.eval_scale,
         "eval_max_size": cfg.eval_max_size,

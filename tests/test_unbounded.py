@@ -171,3 +171,15 @@ def test_depth_loss_rewards_stopping_at_the_point_and_punishes_fog():
     w = torch.cat([torch.zeros(100), torch.zeros(100), torch.zeros(100)])
     extras = dict(weights=w, t_mids=t.repeat(3), ray_indices=torch.arange(3).repeat_interleave(100), t_exit=torch.full((3,), 4.0))
     assert float(model._depth_loss(extras, behind_box)) == 0.5  # ray 0 must stop at 3 and does not; ray 1 is free
+
+
+def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():
+    from nerfpipe.evaluation import fitted_colour_psnr, score
+
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(40, 60, 3, generator=g)
+    darker = 0.7 * gt + 0.05  # a different exposure of the same picture
+    assert score(darker, gt)[0] < 20 and fitted_colour_psnr(darker, gt) > 60
+    wrong_right = darker.clone()
+    wrong_right[:, 30:] = torch.rand(40, 30, 3, generator=g)  # the scored half is wrong: no fit can hide it
+    assert fitted_colour_psnr(wrong_right, gt) < 15
