@@ -143,7 +143,7 @@ def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedCon
     from data_adapters import load
 
     from nerfpipe.models.registry import get_model
-    from nerfpipe.runs import CHECKPOINT, from_dict
+    from nerfpipe.runs import CHECKPOINT, from_dict, load_checkpoint
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     scene = load(Path(run_cfg["data"]))
@@ -151,7 +151,7 @@ def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedCon
     trainer_cfg = dataclasses.replace(from_dict(TrainerConfig, run_cfg["trainer"]), rays_per_step=cfg.rays_per_step, num_threads=None)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(trainer_cfg, scene, run_cfg["model"], model_cfg, Path(tmp))
-    trainer.load_state(torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False))
+    trainer.load_state(load_checkpoint(run_dir / CHECKPOINT))
     set_mode(trainer.model, mode)
     trainer.model.train()
     out = {}

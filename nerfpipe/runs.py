@@ -38,7 +38,32 @@ def from_dict(cls: type, data: dict):
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
+    """Write a checkpoint atomically: tensors, numbers, strings and plain containers only (what
+    :func:`load_checkpoint` accepts)."""
     atomic_write(path, lambda p: torch.save(state, p))
+
+
+def load_checkpoint(path: Path, device: "str | torch.device" = "cpu") -> dict:
+    """Read a checkpoint without executing code from it.
+
+    Checkpoints are what users pass around, so they are read with PyTorch's restricted unpickler
+    (``weights_only=True``: tensors, numbers, strings and plain containers; any other object in the
+    pickle, such as a call to ``os.system``, is refused before it runs).
+
+    Raises:
+        NerfpipeError: naming the file, when it is missing, not a checkpoint, or holds anything else.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise NerfpipeError("checkpoint is missing", path)
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError... for foreign files
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+        raise NerfpipeError(f"not a nerfpipe checkpoint, or one holding objects other than tensors and plain data (refused: {first})", path) from exc
+    if not isinstance(state, dict) or "model" not in state:
+        raise NerfpipeError("not a nerfpipe checkpoint (no model state)", path)
+    return state
 
 
 def read_config(run_dir: Path) -> dict:
@@ -63,5 +88,5 @@ def load_run(run_dir: Path, device: str = "cpu"):
     scene = load(Path(cfg["data"]))
     spec = get_model(cfg["model"])
     model = from_dict(spec.config, cfg["model_config"]).setup(scene_info(scene)).to(device)
-    model.load_state_dict(torch.load(ckpt_path, map_location=device, weights_only=False)["model"])
+    model.load_state_dict(load_checkpoint(ckpt_path, device)["model"])
     return scene, model.eval(), cfg

@@ -20,7 +20,7 @@ import torch
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.pixel_sampler import PixelSampler
-from nerfpipe.runs import CHECKPOINT, CONFIG, save_checkpoint, to_dict, write_json
+from nerfpipe.runs import CHECKPOINT, CONFIG, load_checkpoint, save_checkpoint, to_dict, write_json
 from nerfpipe.scene import SceneData
 
 
@@ -204,7 +204,7 @@ class Trainer:
 
         self.out.mkdir(parents=True, exist_ok=True)
         if self.cfg.resume and (self.out / CHECKPOINT).is_file():
-            self.load_state(torch.load(self.out / CHECKPOINT, map_location=self.cfg.device, weights_only=False))
+            self.load_state(load_checkpoint(self.out / CHECKPOINT, self.cfg.device))
         else:
             torch.set_rng_state(self.torch_rng)
         self.write_config()

@@ -349,7 +349,7 @@ def test_train_and_render_resume_from_the_checkpoint(scene_path, tmp_path):
     more = {**TINY_TRAIN, "train": {**TINY_TRAIN["train"], "trainer": {**TINY_TRAIN["train"]["trainer"], "iters": 4}}}
     again = Pipeline(["load", "train", "render"], more).run(npz, tmp_path)
     assert [r.status for r in again.records] == ["skipped", "ran", "ran"]
-    history = torch.load(tmp_path / "train" / "checkpoint.pt", weights_only=False)["history"]["train"]
+    history = torch.load(tmp_path / "train" / "checkpoint.pt", weights_only=True)["history"]["train"]
     assert [row[0] for row in history] == [1, 2, 3, 4]  # steps 1-2 come from the first run's checkpoint
     assert again["metrics"]["iterations"] == 4
 
