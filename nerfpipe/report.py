@@ -51,6 +51,7 @@ LABELS = {
     "seconds_per_iteration": ("time per iteration", "s"), "rays_per_step": ("rays per step", ""),
     "model": ("model", ""), "model_params": ("parameters", ""), "model_mb": ("model size", "MB"),
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
+    "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
     "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),
     "recall": ("recall", ""), "accuracy": ("accuracy", ""), "completeness": ("completeness", ""),
     "faces": ("faces", ""), "faces_simplified": ("faces (simplified)", ""), "vertices": ("vertices", ""),
@@ -205,7 +206,7 @@ def key_figures(metrics: "dict | None", check: "dict | None", mesh: "dict | None
     """A row of cards with the headline figures that exist."""
     cards = []
     for data, keys in ((metrics, ("val_psnr", "val_ssim", "train_seconds", "iterations", "model_mb", "samples_per_ray")),
-                       (mesh, ("fscore", "chamfer_l1", "faces"))):  # fmt: skip
+                       (mesh, ("fscore", "chamfer_l1", "free_space_violation", "faces"))):  # fmt: skip
         for key in keys:
             if data and isinstance(data.get(key), (int, float)):
                 name, unit = LABELS.get(key, (key, ""))
@@ -328,7 +329,8 @@ def bench_section(page: Page) -> str:
 MESH_KEYS = ["method", "faces", "vertices", "faces_simplified", "hausdorff_max", "hausdorff_mean", "level", "voxel_size",
              "unseen_faces_removed", "floater_faces_removed", "seconds_extract", "seconds_clean_color", "seconds_simplify"]  # fmt: skip
 MESH_EVAL_KEYS = ["fscore", "precision", "recall", "chamfer_l1", "accuracy", "completeness", "normal_consistency", "threshold", "reference",
-                  "points_within_threshold", "points_all_within_threshold", "points_excluded", "points_threshold", "mesh_area_near_points"]  # fmt: skip
+                  "points_within_threshold", "points_all_within_threshold", "points_excluded", "points_threshold", "mesh_area_near_points",
+                  "free_space_violation", "sight_lines", "free_space_tau"]  # fmt: skip
 
 
 def mesh_section(page: Page, mesh: "dict | None", evaluation: "dict | None") -> str:

@@ -51,7 +51,7 @@ def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame
     """
     import numpy as np
 
-    from nerfpipe.mesh.reference import dataset_references, reference_figures
+    from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
 
     gt, points = dataset_references(scene, ctx.source)
     if gt is None and points is None:
@@ -62,7 +62,8 @@ def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame
         xyz = scene.points.xyz.double().cpu().numpy()
         on_object = np.all((xyz >= lo) & (xyz <= hi), axis=1)
     reference = "gt_mesh.ply" if gt is not None else "sparse points"
-    return {"reference": reference, **reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples, on_object=on_object)}
+    figures = reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples, on_object=on_object, sight_lines=sight_lines(scene))
+    return {"reference": reference, **figures}
 
 
 def budgeted(cfg: MeshConfig, seconds_left: "float | None") -> MeshConfig:

@@ -23,7 +23,10 @@ def eval_mesh(
     Against a mesh: accuracy, completeness, Chamfer-L1, precision/recall/F-score at the
     threshold and normal consistency. Against a dataset (e.g. COLMAP): the fraction of its
     sparse points within the threshold of MESH, in the dataset's input frame (the frame
-    nerfpipe exports in); a synthetic scene folder is also compared with its gt_mesh.ply.
+    nerfpipe exports in), and the free-space violation: the share of its track observations
+    whose camera-to-point sight line hits MESH more than 1% of the points' extent before the
+    point (fog scores high, a correct surface near 0); a synthetic scene folder is also
+    compared with its gt_mesh.ply.
 
     Args:
         mesh: the mesh to evaluate (PLY, OBJ, STL, OFF, GLB).
@@ -61,10 +64,11 @@ def _against_mesh(pred, ref_mesh, threshold, samples) -> dict:
 def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
     from data_adapters import load
     from nerfpipe.errors import NerfpipeError
-    from nerfpipe.mesh.reference import dataset_references, reference_figures
+    from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
 
-    gt, points = dataset_references(load(ref), ref)
+    scene = load(ref)
+    gt, points = dataset_references(scene, ref)
     try:
-        return reference_figures(pred, gt, points, threshold, samples, crop, gt_prefix="gt_mesh_")
+        return reference_figures(pred, gt, points, threshold, samples, crop, gt_prefix="gt_mesh_", sight_lines=sight_lines(scene))
     except NerfpipeError as exc:
         raise NerfpipeError(exc.problem, ref) from None

@@ -98,3 +98,48 @@ def point_fraction(points: Float[np.ndarray, "num_points 3"], mesh: TriangleMesh
     """Fraction of ``points`` (e.g. COLMAP's sparse points) within ``threshold`` of the surface."""
     d, _ = SurfaceQuery(mesh).closest(np.asarray(points, dtype=np.float64))
     return {"fraction_within": float(np.mean(d < threshold)), "median_distance": float(np.median(d)), "num_points": int(len(d)), "threshold": float(threshold)}
+
+
+def robust_diagonal(points: Float[np.ndarray, "num_points 3"]) -> float:
+    """Diagonal of the points' 2-98 % quantile box (an extent that ignores stray points)."""
+    lo, hi = np.quantile(np.asarray(points, dtype=np.float64), [0.02, 0.98], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def free_space_violation(
+    mesh: TriangleMesh,
+    points: Float[np.ndarray, "num_points 3"],
+    centers: Float[np.ndarray, "num_cameras 3"],
+    point_idx: "np.ndarray",
+    cam_idx: "np.ndarray",
+    tau: "float | None" = None,
+) -> "dict[str, float]":
+    """Share of sight lines that the mesh blocks: for every track observation (a point and a camera that
+    sees it), the segment from the camera centre to the point must not hit the mesh more than ``tau``
+    before the point. A fog box blocks most of them, a correct surface almost none.
+
+    Args:
+        mesh: the surface, in the frame of ``points`` and ``centers``.
+        points: sparse 3D points.
+        centers: camera centres.
+        point_idx, cam_idx: one row per observation, indices into ``points`` and ``centers``.
+        tau: slack before the point (default: 1 % of the points' 2-98 % extent diagonal).
+
+    Returns:
+        ``free_space_violation`` (the share), ``sight_lines`` (observations cast) and ``free_space_tau``.
+    """
+    o3d = require("open3d", "mesh")
+    points, centers = np.asarray(points, dtype=np.float64), np.asarray(centers, dtype=np.float64)
+    tau = 0.01 * robust_diagonal(points) if tau is None else float(tau)
+    origin = centers[np.asarray(cam_idx, dtype=np.int64)]
+    offset = points[np.asarray(point_idx, dtype=np.int64)] - origin
+    length = np.linalg.norm(offset, axis=1)
+    ok = length > tau
+    direction = offset[ok] / length[ok, None]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh.to_open3d_tensor())
+    rays = np.concatenate([origin[ok], direction], axis=1).astype(np.float32)
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    blocked = t_hit < length[ok] - tau
+    share = float(blocked.mean()) if len(blocked) else 0.0
+    return {"free_space_violation": share, "sight_lines": int(len(blocked)), "free_space_tau": tau}

@@ -4,6 +4,8 @@
 Shared by ``nerfpipe eval-mesh`` (a dataset folder as REF) and the ``mesh`` stage.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from nerfpipe.errors import NerfpipeError
@@ -72,8 +74,10 @@ def reference_figures(
     crop: bool = True,
     gt_prefix: str = "",
     on_object: "Bool[np.ndarray, 'num_points'] | None" = None,
+    sight_lines: "SightLines | None" = None,
 ) -> dict:
-    """F-score, Chamfer... against ``gt_mesh`` (keys prefixed by ``gt_prefix``) and the points figures.
+    """F-score, Chamfer... against ``gt_mesh`` (keys prefixed by ``gt_prefix``), the points figures and,
+    with ``sight_lines``, the free-space violation (:func:`nerfpipe.mesh.metrics.free_space_violation`).
 
     Raises:
         NerfpipeError: when there is neither a ground-truth mesh nor a sparse point.
@@ -88,7 +92,30 @@ def reference_figures(
         out.update({f"{gt_prefix}{k}": v for k, v in compare_meshes(mesh, gt_mesh, threshold, num_samples=samples).to_dict().items()})
     if has_points:
         out.update(points_figures(mesh, np.asarray(points, dtype=np.float64), threshold, crop, on_object))
+        if sight_lines is not None:
+            from nerfpipe.mesh.metrics import free_space_violation
+
+            out.update(free_space_violation(mesh, points, sight_lines.centers, sight_lines.point_idx, sight_lines.cam_idx))
     return out
+
+
+@dataclass
+class SightLines:
+    """Track observations of the sparse points: camera ``cam_idx[i]`` sees point ``point_idx[i]``."""
+
+    centers: Float[np.ndarray, "num_cameras 3"]
+    """Camera centres, in the frame of the points they are used with (the input frame)."""
+    point_idx: "np.ndarray"
+    cam_idx: "np.ndarray"
+
+
+def sight_lines(scene) -> "SightLines | None":
+    """The dataset's track observations with camera centres in its input frame (None without tracks)."""
+    obs = scene.meta.get("observations") if scene.meta else None
+    if obs is None or scene.points is None:
+        return None
+    centers = scene.world_from_input.inverse().apply_points(scene.cameras.centers.double()).numpy()
+    return SightLines(centers=centers, point_idx=np.asarray(obs["point_idx"]), cam_idx=np.asarray(obs["cam_idx"]))
 
 
 def dataset_references(scene, folder) -> "tuple[TriangleMesh | None, np.ndarray | None]":
