@@ -80,7 +80,8 @@ class TrainerConfig:
 def scene_info(scene: SceneData) -> SceneInfo:
     cams = scene.split_cameras("train")
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
-    return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha)
+    return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
+                     unbounded=scene.points is not None and not scene.has_alpha)
 
 
 def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:

@@ -113,3 +113,69 @@ def test_mesh_stage_lowers_the_resolution_under_a_short_budget():
     assert budgeted(cfg, None).resolution == 256
     assert budgeted(cfg, 2 * mesh_seconds(192) + 1).resolution == 192
     assert budgeted(MeshConfig(method="tsdf", resolution=256), 0.0).resolution == 256  # tsdf: untouched
+
+
+def _ring_cameras(n: int = 12, radius: float = 3.0, height: float = 1.5) -> np.ndarray:
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([radius * np.cos(a), radius * np.sin(a), np.full(n, height)], 1)
+
+
+def _plane_mesh(z: float, half: float = 1.5, n: int = 30) -> TriangleMesh:
+    x, y = np.meshgrid(np.linspace(-half, half, n + 1), np.linspace(-half, half, n + 1), indexing="ij")
+    verts = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + 1, i.ravel() + n + 1, i.ravel() + n + 2
+    return TriangleMesh(verts, np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)]))
+
+
+def _merge(*meshes: TriangleMesh) -> TriangleMesh:
+    verts, faces, offset = [], [], 0
+    for m in meshes:
+        verts.append(m.vertices)
+        faces.append(m.faces + offset)
+        offset += m.num_vertices
+    return TriangleMesh(np.concatenate(verts), np.concatenate(faces))
+
+
+def test_support_plane_is_found_under_an_object_and_not_without_one():
+    from nerfpipe.mesh.clean import faces_on_or_below_plane, support_plane
+    from nerfpipe.mesh.metrics import sample_surface
+
+    ball = sphere_mesh(0.5)
+    ball.vertices += np.array([0.0, 0.0, 0.5])  # resting on z = 0
+    table = _plane_mesh(0.0)
+    scene = _merge(ball, table)
+    cams = _ring_cameras()
+    points = sample_surface(ball, 800, seed=1)[0]  # sparse points: on the object only (a white table)
+    cand = np.concatenate([sample_surface(scene, 20000)[0], points])
+    plane = support_plane(cand, points, cams, 0.02)
+    assert plane is not None and abs(abs(plane[2]) - 1) < 1e-3 and abs(plane[3]) < 0.02 and plane[2] > 0
+    below = faces_on_or_below_plane(scene, plane, 0.02)
+    assert below[ball.num_faces:].all()  # the whole table goes
+    assert below[: ball.num_faces].mean() < 0.03  # the ball stays, but for the 2 % cap within the tolerance of the plane
+    # seen from all around (cameras below too), a plane is not a support
+    all_around = np.concatenate([cams, cams * np.array([1, 1, -1])])
+    assert support_plane(cand, points, all_around, 0.02) is None
+    # a lone ball has no plane through 3 % of its surface
+    assert support_plane(sample_surface(ball, 20000)[0], points, cams, 0.02) is None
+
+
+def test_fog_that_sight_lines_cross_is_peeled():
+    from nerfpipe.mesh.clean import faces_blocking_sight_lines
+
+    ball = sphere_mesh(0.5)
+    fog = sphere_mesh(1.0)  # a shell around it: every camera sees the ball's points through it
+    scene = _merge(ball, fog)
+    cams = _ring_cameras()
+    from nerfpipe.mesh.metrics import sample_surface
+
+    pts, normals = sample_surface(ball, 3000, seed=2)
+    origins, targets = [], []
+    for c in cams:  # a camera sees the points on the ball's side that faces it
+        seen = ((c - pts) * normals).sum(1) > 0
+        origins.append(np.repeat(c[None], seen.sum(), 0))
+        targets.append(pts[seen])
+    origins, targets = np.concatenate(origins), np.concatenate(targets)
+    blocking = faces_blocking_sight_lines(scene, origins, targets, tau=0.02)
+    assert not blocking[: ball.num_faces].any()  # the ball is where the lines end: never blocking
+    assert blocking[ball.num_faces:].mean() > 0.3  # the fog shell is crossed on every side the cameras look through

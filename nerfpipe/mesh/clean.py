@@ -5,6 +5,10 @@
 * :func:`faces_near_box_sides` marks the faces along the sides of the meshed box (fog walls);
 * :func:`visible_faces` marks the faces some training camera sees (a z-buffer test against
   a ray-cast depth map per camera), so faces no camera sees (inner blobs) can be dropped;
+* :func:`faces_blocking_sight_lines` marks the faces that camera-to-point sight lines of the sparse
+  points' tracks cross before reaching their point (fog the cameras see through);
+* :func:`support_plane` finds the plane an object stands on (sparse points, cameras on one side) and
+  :func:`faces_on_or_below_plane` marks the mesh of that support;
 * :func:`close_holes` fills holes up to a number of boundary edges;
 * :func:`simplify` runs quadric edge collapse to a target face count;
 * :func:`hausdorff_distance` measures what simplification changed.
@@ -157,3 +161,77 @@ def _depth_map(scene, cams: Cameras, index: int) -> torch.Tensor:
         z_per_t = bundle.z_scale.double()
     t = torch.from_numpy(scene.cast_rays(rays)["t_hit"].numpy()).double()
     return t * z_per_t
+
+
+def faces_blocking_sight_lines(
+    mesh: TriangleMesh,
+    origins: Float[np.ndarray, "num_lines 3"],
+    targets: Float[np.ndarray, "num_lines 3"],
+    tau: float,
+    min_hits: int = 1,
+) -> Bool[np.ndarray, "num_faces"]:
+    """Faces that the cameras see through: the first face a camera-to-point sight line hits when that hit
+    lies more than ``tau`` before the point (the point was photographed, so nothing can stand there).
+
+    Only the first hit of each line is counted; callers repeat after removing the faces to peel
+    fog in layers. A face is marked once ``min_hits`` lines hit it early.
+    """
+    o3d = require("open3d", "mesh")
+    origins, targets = np.asarray(origins, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+    offset = targets - origins
+    length = np.linalg.norm(offset, axis=1)
+    ok = length > tau
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh.to_open3d_tensor())
+    rays = np.concatenate([origins[ok], offset[ok] / length[ok, None]], axis=1).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit, prim = ans["t_hit"].numpy(), ans["primitive_ids"].numpy().astype(np.int64)
+    early = t_hit < length[ok] - tau
+    hits = np.bincount(prim[early], minlength=mesh.num_faces)
+    return hits >= min_hits
+
+
+def support_plane(
+    candidates: Float[np.ndarray, "num_candidates 3"], points: Float[np.ndarray, "num_points 3"],
+    centers: Float[np.ndarray, "num_cameras 3"], tolerance: float,
+    min_inliers: float = 0.03, cameras_above: float = 0.95, points_above: float = 0.95, tries: int = 6, seed: int = 0,
+) -> "Float[np.ndarray, '4'] | None":
+    """The plane an object stands on: a RANSAC plane (Open3D ``segment_plane``) through at least
+    ``min_inliers`` of the ``candidates`` (surface samples and/or sparse points; a white table has few
+    sparse points but a large flat surface), with ``cameras_above`` of the cameras on one side and
+    ``points_above`` of the sparse ``points`` on that side or on it (it bounds the scene from below).
+    The planes are tried by size, each found plane's inliers set aside, up to ``tries`` of them.
+
+    Returns:
+        ``(a, b, c, d)`` with a unit normal and ``a x + b y + c z + d > 0`` on the cameras' side; None
+        when no plane qualifies (e.g. a free-standing object, or an object seen from all around).
+    """
+    o3d = require("open3d", "mesh")
+    points = np.asarray(points, dtype=np.float64)
+    centers = np.asarray(centers, dtype=np.float64)
+    rest = np.asarray(candidates, dtype=np.float64)
+    total = len(rest)
+    o3d.utility.random.seed(seed)
+    for _ in range(tries):
+        if len(rest) < max(50, min_inliers * total):
+            return None
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
+        plane, inliers = cloud.segment_plane(distance_threshold=float(tolerance), ransac_n=3, num_iterations=1000)
+        if len(inliers) < min_inliers * total:
+            return None
+        plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
+        side = centers @ plane[:3] + plane[3]
+        if np.mean(side > 0) < 0.5:
+            plane, side = -plane, -side
+        height = points @ plane[:3] + plane[3]
+        if np.mean(side > 0) >= cameras_above and np.mean(height > -tolerance) >= points_above:
+            return plane
+        rest = np.delete(rest, np.asarray(inliers, dtype=np.int64), axis=0)
+    return None
+
+
+def faces_on_or_below_plane(mesh: TriangleMesh, plane: Float[np.ndarray, "4"], tolerance: float) -> Bool[np.ndarray, "num_faces"]:
+    """Faces with every vertex within ``tolerance`` above the plane or under it (the support and what the
+    cameras never see below it)."""
+    height = mesh.vertices @ plane[:3] + plane[3]
+    return (height[mesh.faces] < tolerance).all(axis=1)

@@ -13,10 +13,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
-from nerfpipe.mesh.clean import close_holes, faces_near_box_sides, hausdorff_distance, remove_small_components, simplify, visible_faces
+from nerfpipe.mesh.clean import (
+    close_holes, faces_blocking_sight_lines, faces_near_box_sides, faces_on_or_below_plane, hausdorff_distance, remove_small_components,
+    simplify, support_plane, visible_faces,
+)
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
@@ -66,6 +71,16 @@ class MeshConfig:
     """Growth of the sparse points' extent, as a fraction of it."""
     box_sides: float = 2.0
     """Drop faces within this many voxels of the meshed box's sides (background painted on the box: fog walls); 0: keep."""
+    support_plane: bool = True
+    """Object captures: drop the plane the object stands on (the dominant plane of the sparse points, all
+    cameras on one side of it) and whatever lies below it; needs sparse points."""
+    support_tolerance: float = 0.01
+    """Faces up to this height above the support plane go with it (fraction of the sparse points' robust
+    extent diagonal); also the RANSAC inlier distance."""
+    free_space_passes: int = 3
+    """Peel fog: drop the faces that the sparse points' sight lines (camera to observed point) hit more than
+    1% of the points' extent before the point, this many times (each pass exposes the next layer); 0: keep;
+    needs track observations (COLMAP)."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
     min_component: float = 0.05
@@ -148,12 +163,14 @@ def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) 
     return choice.level
 
 
-def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None) -> TriangleMesh:
+def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None, lines=None) -> TriangleMesh:
     figures["faces_extracted"] = mesh.num_faces
     if cfg.box_sides > 0 and aabb is not None:
         near = faces_near_box_sides(mesh, aabb.double().cpu().numpy(), cfg.box_sides * figures["voxel_size"])
         figures["box_side_faces_removed"] = int(near.sum())
         mesh = mesh.submesh(~near)
+    if lines is not None:
+        mesh = _object_only(mesh, cfg, cameras, lines, figures)
     if cfg.remove_unseen and cameras is not None:
         start = time.perf_counter()
         seen = visible_faces(mesh, cameras)
@@ -168,6 +185,33 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         mesh = close_holes(mesh, cfg.close_holes)
     if mesh.num_faces == 0:
         raise NerfpipeError("nothing is left of the mesh after cleaning (every face was unseen or a floater)")
+    return mesh
+
+
+def _object_only(mesh: TriangleMesh, cfg: MeshConfig, cameras, lines, figures: dict) -> TriangleMesh:
+    """The support plane and the fog that sight lines pass through, removed (see MeshConfig)."""
+    from nerfpipe.mesh.metrics import robust_diagonal, sample_surface
+
+    extent = robust_diagonal(lines.points)
+    if cfg.support_plane and cameras is not None and mesh.num_faces > 0:
+        centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
+        candidates = np.concatenate([sample_surface(mesh, 20_000)[0], lines.points])
+        plane = support_plane(candidates, lines.points, centers, cfg.support_tolerance * extent)
+        figures["support_plane"] = None if plane is None else [round(float(v), 6) for v in plane]
+        if plane is not None:
+            below = faces_on_or_below_plane(mesh, plane, cfg.support_tolerance * extent)
+            figures["support_faces_removed"] = int(below.sum())
+            if not below.all():
+                mesh = mesh.submesh(~below)
+    removed = 0
+    origins, targets = lines.segments()
+    for _ in range(cfg.free_space_passes):
+        blocking = faces_blocking_sight_lines(mesh, origins, targets, 0.01 * extent)
+        if not blocking.any() or blocking.all():
+            break
+        removed += int(blocking.sum())
+        mesh = mesh.submesh(~blocking)
+    figures["free_space_faces_removed"] = removed
     return mesh
 
 
@@ -194,6 +238,7 @@ def build_meshes(
     cameras: "Cameras | None" = None,
     surface_points: "Float[Tensor, 'num_points 3'] | None" = None,
     surface_origins: "Float[Tensor, 'num_points 3'] | None" = None,
+    sight_lines=None,
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify, all in the world frame; writes nothing.
 
@@ -207,6 +252,8 @@ def build_meshes(
         cameras: the training cameras (tsdf input; unseen-face removal).
         surface_points: where rendered rays end (mc with ``level_from`` agreement or quantile).
         surface_origins: their ray origins (agreement then uses the rays' median depth in the volume).
+        sight_lines: the sparse points' track observations in the world frame
+            (:class:`nerfpipe.mesh.reference.SightLines`): support plane and fog removal.
     """
     if cfg.faces is not None and cfg.faces < 4:
         raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
@@ -216,7 +263,7 @@ def build_meshes(
     mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures)
     t1 = time.perf_counter()
     figures["box_world"] = aabb.tolist()
-    mesh = _clean(mesh, cfg, cameras, figures, aabb)
+    mesh = _clean(mesh, cfg, cameras, figures, aabb, sight_lines)
     if cfg.colors and cfg.method == "mc" and rgb_fn is not None:
         mesh = vertex_colors(mesh, rgb_fn, chunk=cfg.chunk)
     if not cfg.colors:

@@ -95,7 +95,7 @@ def reference_figures(
         if sight_lines is not None:
             from nerfpipe.mesh.metrics import free_space_violation
 
-            out.update(free_space_violation(mesh, points, sight_lines.centers, sight_lines.point_idx, sight_lines.cam_idx))
+            out.update(free_space_violation(mesh, sight_lines.points, sight_lines.centers, sight_lines.point_idx, sight_lines.cam_idx))
     return out
 
 
@@ -103,19 +103,28 @@ def reference_figures(
 class SightLines:
     """Track observations of the sparse points: camera ``cam_idx[i]`` sees point ``point_idx[i]``."""
 
+    points: Float[np.ndarray, "num_points 3"]
+    """The sparse points."""
     centers: Float[np.ndarray, "num_cameras 3"]
-    """Camera centres, in the frame of the points they are used with (the input frame)."""
+    """Camera centres, in the frame of the points."""
     point_idx: "np.ndarray"
     cam_idx: "np.ndarray"
 
+    def segments(self) -> "tuple[np.ndarray, np.ndarray]":
+        """``(camera centres, points)`` of every observation."""
+        return self.centers[np.asarray(self.cam_idx, dtype=np.int64)], self.points[np.asarray(self.point_idx, dtype=np.int64)]
 
-def sight_lines(scene) -> "SightLines | None":
-    """The dataset's track observations with camera centres in its input frame (None without tracks)."""
+
+def sight_lines(scene, frame: str = "input") -> "SightLines | None":
+    """The dataset's track observations, in its ``input`` frame or nerfpipe's ``world`` frame (None without tracks)."""
     obs = scene.meta.get("observations") if scene.meta else None
     if obs is None or scene.points is None:
         return None
-    centers = scene.world_from_input.inverse().apply_points(scene.cameras.centers.double()).numpy()
-    return SightLines(centers=centers, point_idx=np.asarray(obs["point_idx"]), cam_idx=np.asarray(obs["cam_idx"]))
+    points, centers = scene.points.xyz.double(), scene.cameras.centers.double().reshape(-1, 3)
+    if frame == "input":
+        back = scene.world_from_input.inverse()
+        points, centers = back.apply_points(points), back.apply_points(centers)
+    return SightLines(points=points.numpy(), centers=centers.numpy(), point_idx=np.asarray(obs["point_idx"]), cam_idx=np.asarray(obs["cam_idx"]))
 
 
 def dataset_references(scene, folder) -> "tuple[TriangleMesh | None, np.ndarray | None]":

@@ -41,9 +41,13 @@ def mesh_model(cfg: MeshConfig, model, scene, views: "RenderedViews | None" = No
         tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device)
     depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from != "opacity"
     points, origins = surface_points(model, train, views.chunk, device) if depth_level else (None, None)
+    from nerfpipe.mesh.reference import sight_lines
+
+    lines = sight_lines(scene, frame="world")
     with torch.no_grad():
         return build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
-                            cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins)
+                            cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
+                            sight_lines=lines)
 
 
 def crop_to_points(aabb, xyz, margin: float, quantile: float = 0.02):

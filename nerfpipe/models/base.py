@@ -42,6 +42,9 @@ class SceneInfo:
     num_images: int
     pixels_per_image: int
     has_alpha: bool = False
+    unbounded: bool = False
+    """A real capture: the photographs show more than the scene box (floor, walls, sky) and vary in
+    exposure (inputs with sparse points from SfM and no alpha, e.g. COLMAP)."""
 
 
 class Callback(Enum):

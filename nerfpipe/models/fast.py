@@ -94,9 +94,9 @@ class FastConfig:
     """Learn the colour behind the box per viewing direction (default: for scenes without alpha, where
     the photographs show more than the box, e.g. COLMAP captures); otherwise the trainer's background."""
     background_field: "bool | None" = None
-    """Model what lies outside the box with a coarse field in contracted space (default: for scenes
-    without alpha, like ``learned_background``); it is rendered behind the box, so the box need not
-    explain floor, walls and sky with fog."""
+    """Model what lies outside the box with a coarse field in contracted space (default: for real captures,
+    ``SceneInfo.unbounded``); it is rendered behind the box, so the box need not explain floor, walls and
+    sky with fog."""
     behind: BackgroundFieldConfig = field(default_factory=BackgroundFieldConfig)
     """The field behind the box (when ``background_field``)."""
     behind_from: int = 256
@@ -105,8 +105,8 @@ class FastConfig:
     the occupancy grid would then cull it from the box for good)."""
     appearance: "bool | None" = None
     """Per-image colour correction (an affine map of RGB per training image, zero-mean over the images,
-    so evaluation and novel views use the mean: the identity). Default: for scenes without alpha
-    (photographs with varying exposure and white balance)."""
+    so evaluation and novel views use the mean: the identity). Default: for real captures
+    (``SceneInfo.unbounded``: photographs with varying exposure and white balance)."""
     appearance_lr: float = 1e-3
     """Adam learning rate of the per-image colour corrections."""
     depth_weight: float = 0.1
@@ -155,7 +155,7 @@ class FastModel(Model):
         self.register_buffer("march_box", aabb.clone())
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head() if learn_bg else None
-        real = not info.has_alpha
+        real = info.unbounded
         use_behind = real if cfg.background_field is None else cfg.background_field
         self.behind = BackgroundField(cfg.behind, aabb) if use_behind else None
         self.register_buffer("object_box", aabb.clone(), persistent=False)
@@ -379,6 +379,11 @@ class FastModel(Model):
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         """Accept checkpoints whose grids were resampled to a tightened box."""
         # checkpoints from before the step count was saved were trained with the fine spacing
+        # checkpoints from before the field behind the box and the colour corrections: render without them
+        if self.behind is not None and not any(k.startswith(prefix + "behind.") for k in state_dict):
+            self.behind = None
+        if self.appearance is not None and prefix + "appearance" not in state_dict:
+            self.appearance = None
         steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
         self._step = int(steps)
         key = prefix + "field.aabb"
