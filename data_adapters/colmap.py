@@ -9,10 +9,11 @@ Only registered images become cameras, sorted by image name; every 8th of them i
 (world-to-camera poses, OpenCV axes, top-left pixel centre at (0.5, 0.5)), so poses are only
 inverted and then normalised (:func:`nerfpipe.normalize.auto_normalization`).
 
-``meta`` keeps what ``nerfpipe check`` needs to reproject COLMAP's own points:
-``observations`` (``cam_idx`` int32 ``[M]``, ``xy`` float64 ``[M, 2]`` pixel coordinates,
-``point_idx`` int32 ``[M]`` into :attr:`SceneData.points`) and ``colmap_mean_reprojection_error``
-(pycolmap's figure, recomputed on load: the mean over points of each track's mean error).
+The sparse points carry their tracks (:class:`nerfpipe.scene.Points3D` ``track_*``): every
+element of every ``point3D.track`` whose image is one of the cameras, ordered by camera and then
+by keypoint. ``meta`` keeps ``colmap_mean_reprojection_error`` (pycolmap's figure, recomputed on
+load: the mean over points of each track's mean error) and, for readers not yet moved to the
+``track_*`` fields, ``observations``: the same rows as numpy arrays (``cam_idx``, ``xy``, ``point_idx``).
 """
 
 from pathlib import Path
@@ -118,31 +119,23 @@ def _check_image(path: Path, cam) -> None:
         )
 
 
-def _observations(rec, images) -> "dict[str, np.ndarray]":
-    """Every (camera index, pixel, 3D point index) triple of the registered images."""
-    point_ids = np.array(sorted(rec.points3D), dtype=np.int64)
-    cam_idx, xy, pid = [], [], []
-    for i, im in enumerate(images):
-        obs = im.get_observation_points2D()
-        cam_idx.append(np.full(len(obs), i, dtype=np.int32))
-        xy.append(np.array([p.xy for p in obs], dtype=np.float64).reshape(-1, 2))
-        pid.append(np.array([p.point3D_id for p in obs], dtype=np.int64))
-    pid = np.concatenate(pid)
-    return {
-        "cam_idx": np.concatenate(cam_idx),
-        "xy": np.concatenate(xy),
-        "point_idx": np.searchsorted(point_ids, pid).astype(np.int32),
-    }
-
-
-def _points(rec) -> "Points3D | None":
+def _points(rec, images) -> "Points3D | None":
+    """The points, with the track elements whose image is one of ``images`` (by camera, then keypoint)."""
     if rec.num_points3D() == 0:
         return None
+    camera_of = {im.image_id: i for i, im in enumerate(images)}
     pts = [rec.points3D[i] for i in sorted(rec.points3D)]
+    obs = [(camera_of[e.image_id], e.point2D_idx, r) for r, p in enumerate(pts) for e in p.track.elements if e.image_id in camera_of]
+    cam, keypoint, row = np.array(sorted(obs), dtype=np.int64).reshape(-1, 3).T
+    keypoints = [np.array([p.xy for p in im.points2D], dtype=np.float64).reshape(-1, 2) for im in images]
+    first = np.cumsum([0] + [len(k) for k in keypoints])[:-1]  # row of each image's first keypoint
     return Points3D(
         xyz=torch.tensor(np.array([p.xyz for p in pts]), dtype=torch.float64),
         rgb=torch.tensor(np.array([p.color for p in pts]), dtype=torch.uint8),
         error=torch.tensor(np.array([p.error for p in pts]), dtype=torch.float64),
+        track_point=torch.from_numpy(row.copy()),
+        track_camera=torch.from_numpy(cam.copy()),
+        track_xy=torch.from_numpy(np.concatenate(keypoints)[first[cam] + keypoint]),
     )
 
 
@@ -192,7 +185,7 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
     """Normalise cameras and points into nerfpipe's world and build the record."""
     norm = auto_normalization(cams)
     cams.world_from_cam = norm.apply_world_from_cam(cams.world_from_cam)
-    points = _points(rec)
+    points = _points(rec, images)
     if points is not None:
         points.xyz = norm.apply_points(points.xyz).float()
         near, far, aabb = bounds_from_points(cams, points.xyz)
@@ -201,10 +194,10 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
 
         near, far, aabb = bounds_from_cameras(cams)
     rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale
-    meta = {
-        "observations": _observations(rec, images),
-        "colmap_mean_reprojection_error": rec.compute_mean_reprojection_error(),
-    }
+    meta = {"colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
+    if points is not None:
+        obs = {"cam_idx": points.track_camera.numpy(), "xy": points.track_xy.numpy(), "point_idx": points.track_point.numpy()}
+        meta["observations"] = obs
     return SceneData(
         cameras=cams.to(dtype=torch.float32),
         images=ImageSet(paths=paths),

@@ -194,15 +194,14 @@ def facing_fraction(cameras: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
 def sparse_reprojection(scene: SceneData, chunk: int = 100_000) -> "dict | None":
     """Reproject the sparse points into the cameras that observed them (COLMAP scenes).
 
-    Uses ``scene.meta["observations"]`` (see :mod:`data_adapters.colmap`); None without it.
+    Uses the points' tracks (:class:`nerfpipe.scene.Points3D` ``track_*``); None without them.
     """
-    obs = scene.meta.get("observations")
-    if obs is None or scene.points is None or len(obs["xy"]) == 0:
+    pts = scene.points
+    if pts is None or not pts.has_tracks or len(pts.track_point) == 0:
         return None
     cams, _ = orthonormalized(scene.cameras)
-    xyz = scene.points.xyz.double()
-    ci, pi = torch.as_tensor(obs["cam_idx"]).long(), torch.as_tensor(obs["point_idx"]).long()
-    xy = torch.as_tensor(obs["xy"]).double()
+    xyz = pts.xyz.double()
+    ci, pi, xy = pts.track_camera, pts.track_point, pts.track_xy.double()
     err, depth = [], []
     for s in range(0, len(ci), chunk):
         uv, z = cams[ci[s : s + chunk]].project(xyz[pi[s : s + chunk]])

@@ -64,18 +64,18 @@ class TrackRays:
     of the observed point along each ray and the keypoint's pixel colour.
 
     This is the evidence SfM already has about where rays stop (as in DS-NeRF): the space in front
-    of each observed point is empty. Uses ``scene.meta["observations"]`` (``cam_idx``, ``xy``,
-    ``point_idx``; see :mod:`data_adapters.colmap`); observations of cameras outside the split, with
-    keypoints outside the image or points behind the camera are dropped.
+    of each observed point is empty. Uses the points' tracks (:class:`nerfpipe.scene.Points3D`
+    ``track_*``); observations of cameras outside the split, with keypoints outside the image or
+    points behind the camera are dropped.
     """
 
     def __init__(self, scene: SceneData, split: str, pixels: UInt8[Tensor, "P C"], offsets: Tensor) -> None:
-        obs = scene.meta["observations"]
+        pts = scene.points
         local = torch.full((len(scene.cameras),), -1, dtype=torch.long)
         local[torch.as_tensor(scene.splits[split], dtype=torch.long)] = torch.arange(len(scene.splits[split]))
-        cam = local[torch.as_tensor(obs["cam_idx"], dtype=torch.long)]
-        uv = torch.as_tensor(obs["xy"], dtype=torch.float64)
-        xyz = scene.points.xyz.double()[torch.as_tensor(obs["point_idx"], dtype=torch.long)]
+        cam = local[pts.track_camera]
+        uv = pts.track_xy.double()
+        xyz = pts.xyz.double()[pts.track_point]
         cameras = scene.split_cameras(split)
         keep = cam >= 0
         cam, uv, xyz = cam[keep], uv[keep], xyz[keep]
@@ -108,7 +108,7 @@ class PixelSampler:
         self.pixels, self.offsets = load_split_pixels(scene, split)
         self.background = background
         self.device = torch.device(device)
-        has_tracks = scene.points is not None and "observations" in scene.meta
+        has_tracks = scene.points is not None and scene.points.has_tracks
         self.tracks = TrackRays(scene, split, self.pixels, self.offsets) if track_rays and has_tracks else None
         self.track_rays = track_rays if self.tracks is not None and len(self.tracks) else 0
         """Rays per batch through sparse points (the rest are uniform pixels)."""

@@ -14,7 +14,7 @@ import torch
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.typing import Bool, Float, Int, Tensor
 
 SPLITS = ("train", "val", "test")
 
@@ -60,12 +60,47 @@ class Similarity:
 
 @dataclass
 class Points3D:
-    """Sparse 3D points (e.g. from COLMAP) in the world frame."""
+    """Sparse 3D points (e.g. from COLMAP) in the world frame, with their tracks when the source has them.
+
+    A track observation says that camera ``track_camera[k]`` sees point ``track_point[k]`` at pixel
+    ``track_xy[k]``; the three are flat, one row per observation (a point seen by 6 cameras has 6
+    rows). Indices stay valid under a change of frame (only ``xyz`` moves); code that drops points
+    must renumber ``track_point`` (:meth:`select`).
+    """
 
     xyz: Float[Tensor, "num_points 3"]
     rgb: "Tensor"  # uint8 [num_points, 3]
     error: "Tensor | None" = None
     """Per-point reprojection error in pixels, when the source has it."""
+    track_point: "Int[Tensor, 'num_obs'] | None" = None
+    """int64 row into ``xyz`` of each observation's point."""
+    track_camera: "Int[Tensor, 'num_obs'] | None" = None
+    """int64 index into :attr:`SceneData.cameras` of each observation's camera."""
+    track_xy: "Float[Tensor, 'num_obs 2'] | None" = None
+    """float64 pixel of each observation (the keypoint; top-left pixel centre at (0.5, 0.5))."""
+
+    def __post_init__(self) -> None:
+        tracks = (self.track_point, self.track_camera, self.track_xy)
+        if any(t is None for t in tracks) != all(t is None for t in tracks):
+            raise ValueError("give all of track_point, track_camera and track_xy, or none")
+        if self.track_point is not None and not len(self.track_point) == len(self.track_camera) == len(self.track_xy):
+            raise ValueError("track_point, track_camera and track_xy need one row per observation")
+        if self.track_point is not None and len(self.track_point) and not 0 <= int(self.track_point.min()) <= int(self.track_point.max()) < len(self.xyz):
+            raise ValueError(f"track_point must index the {len(self.xyz)} points")
+
+    @property
+    def has_tracks(self) -> bool:
+        return self.track_point is not None
+
+    def select(self, keep: "Bool[Tensor, 'num_points']") -> "Points3D":
+        """The points where ``keep`` is true, with their observations renumbered (the others' dropped)."""
+        keep = torch.as_tensor(keep, dtype=torch.bool)
+        error = None if self.error is None else self.error[keep]
+        if not self.has_tracks:
+            return Points3D(self.xyz[keep], self.rgb[keep], error)
+        row = torch.cumsum(keep.long(), 0) - 1
+        obs = keep[self.track_point]
+        return Points3D(self.xyz[keep], self.rgb[keep], error, row[self.track_point[obs]], self.track_camera[obs], self.track_xy[obs])
 
 
 class ImageSet:

@@ -7,6 +7,7 @@ Every shape annotation in nerfpipe uses these axis names:
 * ``num_rays``     number of rays in a flat batch
 * ``num_samples``  samples along each ray
 * ``num_points``   points in a flat batch (3D points, pixels)
+* ``num_obs``      track observations of sparse points (one row per point seen by one camera)
 * ``H W``          image height and width in pixels
 * ``C``            channels (3 for RGB, 4 for RGBA)
 

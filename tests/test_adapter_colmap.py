@@ -74,13 +74,18 @@ def test_points_and_observations(tmp_path):
     torch.testing.assert_close(xyz_back, xyz_ref, atol=1e-5 * float(xyz_ref.abs().max()), rtol=0)
     rgb_ref = torch.tensor(np.array([rec.points3D[i].color for i in ids]), dtype=torch.uint8)
     assert torch.equal(scene.points.rgb, rgb_ref)
-    obs = scene.meta["observations"]
+    pts = scene.points
     images, _ = _reference(rec)
-    assert len(obs["xy"]) == sum(im.num_points3D for im in images)
+    assert pts.track_point.dtype == pts.track_camera.dtype == torch.int64
+    assert len(pts.track_xy) == sum(im.num_points3D for im in images) == sum(rec.points3D[i].track.length() for i in ids)
     first = images[1].get_observation_points2D()
-    sel = obs["cam_idx"] == 1
-    np.testing.assert_array_equal(obs["xy"][sel], np.array([q.xy for q in first]))
-    np.testing.assert_array_equal(np.array(ids)[obs["point_idx"][sel]], [q.point3D_id for q in first])
+    sel = (pts.track_camera == 1).numpy()
+    np.testing.assert_array_equal(pts.track_xy.numpy()[sel], np.array([q.xy for q in first]))
+    np.testing.assert_array_equal(np.array(ids)[pts.track_point.numpy()[sel]], [q.point3D_id for q in first])
+    # every track element, as pycolmap lists it per point, is one observation
+    image_of = [im.image_id for im in images]
+    from_tracks = sorted((r, e.image_id) for r, i in enumerate(ids) for e in rec.points3D[i].track.elements)
+    assert sorted(zip(pts.track_point.tolist(), [image_of[c] for c in pts.track_camera.tolist()])) == from_tracks
 
 
 def test_split_rule_and_layouts(tmp_path):
@@ -127,6 +132,36 @@ def test_colmap_mouse(scene_path):
     assert scene.points is not None and len(scene.points.xyz) == rec.num_points3D()
     reported = rec.compute_mean_reprojection_error()
     assert scene.meta["colmap_mean_reprojection_error"] == pytest.approx(reported, rel=1e-6)
+
+
+def test_colmap_mouse_tracks(scene_path):
+    """4,443 points, mean track length 5.77 (PROVENANCE.md): every track element is one observation,
+    and each reprojects through our cameras (normalised world, float32) onto its keypoint."""
+    root = scene_path("colmap_mouse")
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    scene = data_adapters.load(root)
+    pts = scene.points
+    lengths = np.bincount(pts.track_point.numpy(), minlength=len(pts.xyz))
+    assert len(pts.xyz) == 4443 and len(pts.track_point) == sum(p.track.length() for p in rec.points3D.values()) == 25656
+    assert lengths.min() >= 2 and lengths.mean() == pytest.approx(5.77, abs=0.005)
+    uv, z = scene.cameras[pts.track_camera].project(pts.xyz[pts.track_point])
+    err = (uv.double() - pts.track_xy).norm(dim=-1)
+    assert bool((z > 0).all()) and float(err.median()) < 2.0 and float(err.mean()) < 2.0
+
+
+def test_select_renumbers_tracks(tmp_path):
+    scene = data_adapters.load(make_scene(tmp_path, "PINHOLE", frames=6, points=40))
+    pts = scene.points
+    keep = torch.arange(len(pts.xyz)) % 3 != 1
+    sub = pts.select(keep)
+    obs = keep[pts.track_point]
+    assert len(sub.xyz) == int(keep.sum()) and len(sub.track_point) == int(obs.sum()) > 0
+    assert torch.equal(sub.xyz[sub.track_point], pts.xyz[pts.track_point[obs]])
+    assert torch.equal(sub.track_camera, pts.track_camera[obs]) and torch.equal(sub.track_xy, pts.track_xy[obs])
+    with pytest.raises(ValueError, match="index the"):
+        type(pts)(pts.xyz[:2], pts.rgb[:2], None, pts.track_point, pts.track_camera, pts.track_xy)
+    with pytest.raises(ValueError, match="or none"):
+        type(pts)(pts.xyz, pts.rgb, None, pts.track_point, None, None)
 
 
 # ---------------------------------------------------------------- errors, each naming the file

@@ -124,6 +124,22 @@ def test_colmap_model_round_trips_through_pycolmap(written):
     assert min(p.track.length() for p in rec.points3D.values()) >= SynthConfig().min_track_length
 
 
+def test_colmap_tracks_are_the_generator_visibility(written):
+    """The adapter reads back exactly the (point, view) pairs the generator found unoccluded, at their pixels."""
+    import data_adapters
+
+    result = written["colmap"]
+    cfg = SynthConfig(layout="colmap", views=10, width=40, height=32, num_points=600)  # the fixture's
+    truth = sample_points(raycaster(result.mesh), result.mesh, result.cameras, cfg)
+    scene = data_adapters.load(result.path)
+    pts = scene.points
+    view = torch.tensor([int(Path(p).stem.split("_")[1]) for p in scene.images.paths])
+    seen = np.zeros_like(truth.visible)
+    seen[pts.track_point.numpy(), view[pts.track_camera].numpy()] = True
+    assert len(pts.track_point) == int(truth.visible.sum()) and np.array_equal(seen, truth.visible)
+    np.testing.assert_allclose(pts.track_xy.numpy(), truth.uv[pts.track_point.numpy(), view[pts.track_camera].numpy()], atol=1e-9)
+
+
 def test_files_and_mesh_in_input_frame(written):
     import trimesh
 
