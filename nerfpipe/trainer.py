@@ -80,8 +80,11 @@ class TrainerConfig:
 def scene_info(scene: SceneData) -> SceneInfo:
     cams = scene.split_cameras("train")
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
+    rel = (cams.fx.double() / (cams.width.double() ** 2 + cams.height.double() ** 2).sqrt()).reshape(-1)
+    med = rel.median() if len(rel) else rel.new_ones(())
+    spread = float((rel - med).abs().median() / med) if len(rel) > 1 else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.points is not None and not scene.has_alpha)
+                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread)
 
 
 def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
