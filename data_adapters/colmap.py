@@ -12,8 +12,7 @@ inverted and then normalised (:func:`nerfpipe.normalize.auto_normalization`).
 The sparse points carry their tracks (:class:`nerfpipe.scene.Points3D` ``track_*``): every
 element of every ``point3D.track`` whose image is one of the cameras, ordered by camera and then
 by keypoint. ``meta`` keeps ``colmap_mean_reprojection_error`` (pycolmap's figure, recomputed on
-load: the mean over points of each track's mean error) and, for readers not yet moved to the
-``track_*`` fields, ``observations``: the same rows as numpy arrays (``cam_idx``, ``xy``, ``point_idx``).
+load: the mean over points of each track's mean error).
 """
 
 from pathlib import Path
@@ -195,9 +194,6 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
         near, far, aabb = bounds_from_cameras(cams)
     rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale
     meta = {"colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
-    if points is not None:
-        obs = {"cam_idx": points.track_camera.numpy(), "xy": points.track_xy.numpy(), "point_idx": points.track_point.numpy()}
-        meta["observations"] = obs
     return SceneData(
         cameras=cams.to(dtype=torch.float32),
         images=ImageSet(paths=paths),

@@ -51,3 +51,24 @@ def test_mouse_tracks_are_cast(scene_path):
     lo, hi = np.quantile(points, [0.02, 0.98], axis=0)
     empty = box_mesh(hi + 100.0, hi + 101.0)  # far from every sight line
     assert free_space_violation(empty, points, lines.centers, lines.point_idx, lines.cam_idx)["free_space_violation"] == 0.0
+
+
+def _wall(x: float, offset, half: float = 10.0) -> TriangleMesh:
+    """A square in the plane ``x = const`` (two triangles), spanning ``[-half, half]`` in y and z, moved by ``offset``."""
+    v = np.array([[x, -half, -half], [x, half, -half], [x, half, half], [x, -half, half]]) + offset
+    return TriangleMesh(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (4_123_456.7, 5_234_567.3, 312.9)], ids=["origin", "utm"])
+def test_golden_sight_lines_across_a_wall(offset):
+    """Camera at x=-0.37, wall at x=1: points at x = 0.5 (in front), 1 + tau/2 (on the wall, within the slack)
+    and 1 + 2 tau (behind) score 0, 0 and 1, also far from the origin (float32 casting)."""
+    tau, offset = 0.01, np.asarray(offset)
+    points = np.array([[0.5, 0.1, 0.0], [1.0 + tau / 2, -0.2, 0.1], [1.0 + 2 * tau, 0.0, 0.3]]) + offset
+    centers = np.array([[-0.37, 0.0, 0.0]]) + offset
+    wall = _wall(1.0, offset)
+    one = lambda *i: np.array(i, dtype=np.int64)  # noqa: E731
+    each = [free_space_violation(wall, points, centers, one(i), one(0), tau=tau)["free_space_violation"] for i in range(3)]
+    assert each == [0.0, 0.0, 1.0]
+    both = free_space_violation(wall, points, centers, one(0, 1, 2, 2), one(0, 0, 0, 0), tau=tau)
+    assert both == {"free_space_violation": 0.5, "sight_lines": 4, "free_space_tau": tau}

@@ -144,8 +144,8 @@ def test_track_rays_pass_through_their_points(scene_path):
     scene = load(scene_path("colmap_mouse"))
     sampler = PixelSampler(scene, "train", "black", track_rays=256)
     tracks = sampler.tracks
-    obs = scene.meta["observations"]
-    assert 0.8 * len(obs["cam_idx"]) * len(scene.splits["train"]) / len(scene.cameras) < len(tracks) <= len(obs["cam_idx"])
+    num_obs = len(scene.points.track_camera)
+    assert 0.8 * num_obs * len(scene.splits["train"]) / len(scene.cameras) < len(tracks) <= num_obs
     batch = sampler.sample(1024, torch.Generator().manual_seed(0))
     depth = batch.depth
     assert int(torch.isnan(depth).sum()) == 1024 - 256 and bool((depth[-256:] > 0).all())

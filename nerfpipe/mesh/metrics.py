@@ -20,7 +20,7 @@ import numpy as np
 
 from nerfpipe.errors import require
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Float
+from nerfpipe.typing import Float, Int
 
 DEFAULT_THRESHOLD_FRACTION = 0.01
 
@@ -110,8 +110,8 @@ def free_space_violation(
     mesh: TriangleMesh,
     points: Float[np.ndarray, "num_points 3"],
     centers: Float[np.ndarray, "num_cameras 3"],
-    point_idx: "np.ndarray",
-    cam_idx: "np.ndarray",
+    point_idx: Int[np.ndarray, "num_obs"],
+    cam_idx: Int[np.ndarray, "num_obs"],
     tau: "float | None" = None,
 ) -> "dict[str, float]":
     """Share of sight lines that the mesh blocks: for every track observation (a point and a camera that
@@ -126,18 +126,24 @@ def free_space_violation(
         tau: slack before the point (default: 1 % of the points' 2-98 % extent diagonal).
 
     Returns:
-        ``free_space_violation`` (the share), ``sight_lines`` (observations cast) and ``free_space_tau``.
+        ``free_space_violation`` (the share), ``sight_lines`` (observations cast: those longer than
+        ``tau``) and ``free_space_tau``.
+
+    Note:
+        Open3D casts in float32, so everything is first moved to the points' median: a capture far
+        from its origin (geo-registered) keeps its precision.
     """
     o3d = require("open3d", "mesh")
     points, centers = np.asarray(points, dtype=np.float64), np.asarray(centers, dtype=np.float64)
     tau = 0.01 * robust_diagonal(points) if tau is None else float(tau)
-    origin = centers[np.asarray(cam_idx, dtype=np.int64)]
-    offset = points[np.asarray(point_idx, dtype=np.int64)] - origin
+    shift = np.median(points, axis=0)
+    origin = centers[np.asarray(cam_idx, dtype=np.int64)] - shift
+    offset = points[np.asarray(point_idx, dtype=np.int64)] - shift - origin
     length = np.linalg.norm(offset, axis=1)
     ok = length > tau
     direction = offset[ok] / length[ok, None]
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(mesh.to_open3d_tensor())
+    scene.add_triangles(TriangleMesh(mesh.vertices - shift, mesh.faces).to_open3d_tensor())
     rays = np.concatenate([origin[ok], direction], axis=1).astype(np.float32)
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     blocked = t_hit < length[ok] - tau

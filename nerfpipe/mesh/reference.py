@@ -116,15 +116,16 @@ class SightLines:
 
 
 def sight_lines(scene, frame: str = "input") -> "SightLines | None":
-    """The dataset's track observations, in its ``input`` frame or nerfpipe's ``world`` frame (None without tracks)."""
-    obs = scene.meta.get("observations") if scene.meta else None
-    if obs is None or scene.points is None:
+    """The dataset's track observations (:class:`nerfpipe.scene.Points3D` ``track_*``), in its ``input``
+    frame or nerfpipe's ``world`` frame (None without tracks)."""
+    pts = scene.points
+    if pts is None or not pts.has_tracks:
         return None
-    points, centers = scene.points.xyz.double(), scene.cameras.centers.double().reshape(-1, 3)
+    points, centers = pts.xyz.double(), scene.cameras.centers.double().reshape(-1, 3)
     if frame == "input":
         back = scene.world_from_input.inverse()
         points, centers = back.apply_points(points), back.apply_points(centers)
-    return SightLines(points=points.numpy(), centers=centers.numpy(), point_idx=np.asarray(obs["point_idx"]), cam_idx=np.asarray(obs["cam_idx"]))
+    return SightLines(points=points.numpy(), centers=centers.numpy(), point_idx=pts.track_point.numpy(), cam_idx=pts.track_camera.numpy())
 
 
 def dataset_references(scene, folder) -> "tuple[TriangleMesh | None, np.ndarray | None]":
