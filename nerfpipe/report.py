@@ -52,6 +52,7 @@ LABELS = {
     "model": ("model", ""), "model_params": ("parameters", ""), "model_mb": ("model size", "MB"),
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
     "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
+    "sight_lines": ("sight lines (camera to sparse point)", ""), "free_space_tau": ("free-space slack before the point", ""),
     "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),
     "recall": ("recall", ""), "accuracy": ("accuracy", ""), "completeness": ("completeness", ""),
     "faces": ("faces", ""), "faces_simplified": ("faces (simplified)", ""), "vertices": ("vertices", ""),

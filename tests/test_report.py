@@ -237,3 +237,18 @@ def test_without_a_bench_the_runs_own_validations_are_the_speed_table(tmp_path):
     section = page[page.index('id="bench"') : page.index('id="missing"')]
     assert "this run's validations" in section and "28.75" in section and "155.2" in section
     assert "speed-against-error table" not in page[page.index('id="missing"') :]
+
+
+def test_mesh_metrics_show_the_free_space_violation(full_run):
+    """mesh/mesh_metrics.json (the mesh stage's figures against the dataset): the free-space violation is a
+    headline card and a row of the mesh section, with its sight-line count."""
+    evaluation = {"reference": "sparse points", "points_within_threshold": 0.9688, "free_space_violation": 0.6221,
+                  "sight_lines": 25656, "free_space_tau": 0.02684}  # fmt: skip
+    _write_json(full_run / "mesh" / "mesh_metrics.json", evaluation)
+    page = _run_report(full_run)
+    cards = page[page.index('class="card') : page.index('id="mesh"')]
+    mesh = page[page.index('id="mesh"') :]
+    assert "free-space violation" in cards and fmt(0.6221) in cards
+    for value in (0.9688, 0.6221, 25656, 0.02684):
+        assert fmt(value) in mesh, value
+    assert "free-space violation" in mesh and "sight lines (camera to sparse point)" in mesh
