@@ -46,6 +46,8 @@ def test_sfm_stage_on_photos(photos, scene_path, tmp_path):
     assert {c.model.name for c in undistorted.cameras.values()} == {"PINHOLE"}
     scene = result["scene"]
     assert len(scene.cameras) == summary["num_registered"] and scene.points is not None
+    # the undistorted model keeps the tracks: every element is one observation of the loaded scene
+    assert len(scene.points.track_point) == sum(p.track.length() for p in undistorted.points3D.values()) > 0
     assert result["check"]["failures"] == []
     assert not (tmp_path / "sfm.work" / "images" / PHOTOS[0]).is_symlink()  # downscaled copies, not the originals
 
