@@ -34,7 +34,7 @@ class RenderSpeedConfig:
     """What to measure."""
 
     run_dir: tyro.conf.Positional[Path]
-    """A run folder of the ``fast`` model (config.json + checkpoint.pt)."""
+    """A run folder of the ``fast`` model (config.json + checkpoint.safetensors)."""
     modes: "tuple[str, ...]" = ("reference", "early-noskip", "early")
     """``reference`` (the full density pass, one-level marching), ``early-noskip`` (rounds with early
     termination, one-level marching) and/or ``early`` (rounds, two-level empty-space skipping)."""
@@ -142,8 +142,9 @@ def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> 
 def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedConfig) -> dict:
     from data_adapters import load
 
+    from nerfpipe.checkpoint import CHECKPOINT, load_checkpoint
     from nerfpipe.models.registry import get_model
-    from nerfpipe.runs import CHECKPOINT, from_dict, load_checkpoint
+    from nerfpipe.runs import from_dict
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     scene = load(Path(run_cfg["data"]))

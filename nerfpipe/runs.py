@@ -1,4 +1,5 @@
-"""The run folder: ``config.json`` (enough to rebuild scene and model), ``checkpoint.pt``, outputs.
+"""The run folder: ``config.json`` (enough to rebuild scene and model), ``checkpoint.safetensors``
+(:mod:`nerfpipe.checkpoint`), outputs.
 
 ``config.json`` holds ``{"data": path, "model": name, "model_config": {...}, "trainer": {...}}``;
 :func:`load_run` rebuilds the scene (through ``data_adapters.load``) and the trained model.
@@ -9,13 +10,11 @@ import json
 import typing
 from pathlib import Path
 
-import torch
-
-from nerfpipe.atomic import atomic_write, write_json  # noqa: F401 (write_json is part of this module's API)
+from nerfpipe.atomic import write_json  # noqa: F401 (write_json is part of this module's API)
+from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint
 from nerfpipe.errors import NerfpipeError
 
 CONFIG = "config.json"
-CHECKPOINT = "checkpoint.pt"
 
 
 def to_dict(obj) -> dict:
@@ -37,35 +36,6 @@ def from_dict(cls: type, data: dict):
     return cls(**kwargs)
 
 
-def save_checkpoint(path: Path, state: dict) -> None:
-    """Write a checkpoint atomically: tensors, numbers, strings and plain containers only (what
-    :func:`load_checkpoint` accepts)."""
-    atomic_write(path, lambda p: torch.save(state, p))
-
-
-def load_checkpoint(path: Path, device: "str | torch.device" = "cpu") -> dict:
-    """Read a checkpoint without executing code from it.
-
-    Checkpoints are what users pass around, so they are read with PyTorch's restricted unpickler
-    (``weights_only=True``: tensors, numbers, strings and plain containers; any other object in the
-    pickle, such as a call to ``os.system``, is refused before it runs).
-
-    Raises:
-        NerfpipeError: naming the file, when it is missing, not a checkpoint, or holds anything else.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise NerfpipeError("checkpoint is missing", path)
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError... for foreign files
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
-        raise NerfpipeError(f"not a nerfpipe checkpoint, or one holding objects other than tensors and plain data (refused: {first})", path) from exc
-    if not isinstance(state, dict) or "model" not in state:
-        raise NerfpipeError("not a nerfpipe checkpoint (no model state)", path)
-    return state
-
-
 def read_config(run_dir: Path) -> dict:
     path = Path(run_dir) / CONFIG
     if not path.is_file():
@@ -82,11 +52,12 @@ def load_run(run_dir: Path, device: str = "cpu"):
     from nerfpipe.trainer import scene_info
 
     cfg = read_config(run_dir)
-    ckpt_path = Path(run_dir) / CHECKPOINT
-    if not ckpt_path.is_file():
+    ckpt_path = find_checkpoint(run_dir)
+    if ckpt_path is None:
         raise NerfpipeError(f"run has no {CHECKPOINT} yet", run_dir)
+    state = load_checkpoint(ckpt_path)["model"]  # first: a refused checkpoint costs no scene loading
     scene = load(Path(cfg["data"]))
     spec = get_model(cfg["model"])
     model = from_dict(spec.config, cfg["model_config"]).setup(scene_info(scene)).to(device)
-    model.load_state_dict(load_checkpoint(ckpt_path, device)["model"])
+    model.load_state_dict(state)
     return scene, model.eval(), cfg

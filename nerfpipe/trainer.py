@@ -17,10 +17,11 @@ from pathlib import Path
 
 import torch
 
+from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.pixel_sampler import PixelSampler
-from nerfpipe.runs import CHECKPOINT, CONFIG, load_checkpoint, save_checkpoint, to_dict, write_json
+from nerfpipe.runs import CONFIG, to_dict, write_json
 from nerfpipe.scene import SceneData
 
 
@@ -64,7 +65,7 @@ class TrainerConfig:
     background: str = "auto"
     """black | white | random | auto (random in training and white at evaluation for RGBA data, else black)."""
     checkpoint_every: int = 500
-    """Write checkpoint.pt every this many iterations (and always at the end)."""
+    """Write checkpoint.safetensors every this many iterations (and always at the end)."""
     chunk: int = 4096
     """Rays per forward pass when rendering whole images."""
     video_frames: int = 60
@@ -72,7 +73,7 @@ class TrainerConfig:
     video_scale: float = 1.0
     """Resolution factor of the videos."""
     resume: bool = False
-    """Continue from the run folder's checkpoint.pt."""
+    """Continue from the run folder's checkpoint.safetensors."""
     write_outputs: bool = True
     """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
 
@@ -207,8 +208,9 @@ class Trainer:
         from nerfpipe import evaluation
 
         self.out.mkdir(parents=True, exist_ok=True)
-        if self.cfg.resume and (self.out / CHECKPOINT).is_file():
-            self.load_state(load_checkpoint(self.out / CHECKPOINT, self.cfg.device))
+        checkpoint = find_checkpoint(self.out) if self.cfg.resume else None
+        if checkpoint is not None:
+            self.load_state(load_checkpoint(checkpoint))
         else:
             torch.set_rng_state(self.torch_rng)
         self.write_config()

@@ -1,11 +1,11 @@
 """Stage ``train``: fit a registered model (``nerfpipe.models`` group) with :class:`nerfpipe.trainer.Trainer`.
 
-The trainer's run folder is ``RUN_DIR/train`` (``config.json``, ``checkpoint.pt``, ``metrics.json``,
+The trainer's run folder is ``RUN_DIR/train`` (``config.json``, ``checkpoint.safetensors``, ``metrics.json``,
 ``psnr.png``, ``progress.png``, ``cameras.png``). Videos are the ``render`` stage's job, so the
 trainer writes none here.
 
 Resume: when the stage runs again (interrupted, or with more ``iters`` or a new time budget) and
-``train/checkpoint.pt`` holds the same model, model options and training options (``iters``
+``train/checkpoint.safetensors`` holds the same model, model options and training options (``iters``
 and ``time_budget`` aside), training continues from that checkpoint; otherwise it starts afresh.
 
 Time budget: the trainer's ``time_budget`` (training seconds, validation excluded) is the smaller
@@ -17,11 +17,12 @@ import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from nerfpipe import checkpoint
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
 
 TRAIN_DIR = "train"
-CHECKPOINT = f"{TRAIN_DIR}/checkpoint.pt"
+CHECKPOINT = f"{TRAIN_DIR}/{checkpoint.CHECKPOINT}"
 METRICS = f"{TRAIN_DIR}/metrics.json"
 _RESUMABLE_CHANGES = ("iters", "time_budget", "resume", "device", "video_frames")
 """Trainer options that may differ between a checkpoint and the run that continues it."""
@@ -71,7 +72,7 @@ def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> 
     """Whether ``out`` holds a checkpoint of this very training (up to the resumable options)."""
     from nerfpipe.runs import to_dict
 
-    if not (out / "checkpoint.pt").is_file() or not (out / "config.json").is_file():
+    if not (out / checkpoint.CHECKPOINT).is_file() or not (out / "config.json").is_file():
         return False
     old = json.loads((out / "config.json").read_text())
     strip = lambda d: {k: v for k, v in d.items() if k not in _RESUMABLE_CHANGES}  # noqa: E731

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from nerfpipe.checkpoint import load_checkpoint
 from nerfpipe.cli import main
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.registry import PluginWarning, STAGE_GROUP
@@ -349,7 +350,7 @@ def test_train_and_render_resume_from_the_checkpoint(scene_path, tmp_path):
     more = {**TINY_TRAIN, "train": {**TINY_TRAIN["train"], "trainer": {**TINY_TRAIN["train"]["trainer"], "iters": 4}}}
     again = Pipeline(["load", "train", "render"], more).run(npz, tmp_path)
     assert [r.status for r in again.records] == ["skipped", "ran", "ran"]
-    history = torch.load(tmp_path / "train" / "checkpoint.pt", weights_only=True)["history"]["train"]
+    history = load_checkpoint(tmp_path / "train" / "checkpoint.safetensors")["history"]["train"]
     assert [row[0] for row in history] == [1, 2, 3, 4]  # steps 1-2 come from the first run's checkpoint
     assert again["metrics"]["iterations"] == 4
 

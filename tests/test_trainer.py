@@ -77,7 +77,7 @@ def test_psnr_rises_and_outputs_exist(tiny_scene, tmp_path):
     assert metrics["iterations"] == 60 and metrics["samples_per_ray"] == 16
     assert json.loads((tmp_path / "metrics.json").read_text())["val_psnr"] == pytest.approx(metrics["val_psnr"])
     assert json.loads((tmp_path / "history.json").read_text())["val"][-1]["step"] == 60
-    for name in ("config.json", "checkpoint.pt", "psnr.png", "progress.png", "cameras.png", "orbit.gif", "orbit.mp4", "depth_orbit.gif"):
+    for name in ("config.json", "checkpoint.safetensors", "psnr.png", "progress.png", "cameras.png", "orbit.gif", "orbit.mp4", "depth_orbit.gif"):
         assert (tmp_path / name).stat().st_size > 0, name
     assert "turbo" in metrics["depth_colormap"]
 
