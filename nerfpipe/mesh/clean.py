@@ -176,18 +176,10 @@ def faces_blocking_sight_lines(
     Only the first hit of each line is counted; callers repeat after removing the faces to peel
     fog in layers. A face is marked once ``min_hits`` lines hit it early.
     """
-    o3d = require("open3d", "mesh")
-    origins, targets = np.asarray(origins, dtype=np.float64), np.asarray(targets, dtype=np.float64)
-    offset = targets - origins
-    length = np.linalg.norm(offset, axis=1)
-    ok = length > tau
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(mesh.to_open3d_tensor())
-    rays = np.concatenate([origins[ok], offset[ok] / length[ok, None]], axis=1).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
-    t_hit, prim = ans["t_hit"].numpy(), ans["primitive_ids"].numpy().astype(np.int64)
-    early = t_hit < length[ok] - tau
-    hits = np.bincount(prim[early], minlength=mesh.num_faces)
+    from nerfpipe.mesh.metrics import early_hits
+
+    blocked, face = early_hits(mesh, origins, targets, tau)
+    hits = np.bincount(face[blocked], minlength=mesh.num_faces)
     return hits >= min_hits
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from nerfpipe.errors import require
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Float, Int
+from nerfpipe.typing import Bool, Float, Int
 
 DEFAULT_THRESHOLD_FRACTION = 0.01
 
@@ -106,6 +106,34 @@ def robust_diagonal(points: Float[np.ndarray, "num_points 3"]) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
+def early_hits(
+    mesh: TriangleMesh,
+    origins: Float[np.ndarray, "num_lines 3"],
+    targets: Float[np.ndarray, "num_lines 3"],
+    tau: float,
+    shift: "Float[np.ndarray, '3'] | None" = None,
+) -> "tuple[Bool[np.ndarray, 'num_cast'], Int[np.ndarray, 'num_cast']]":
+    """Cast the segments ``origins -> targets`` longer than ``tau`` against ``mesh`` (Open3D): whether the
+    first hit lies more than ``tau`` before the target, and the face hit (-1: none).
+
+    Open3D casts in float32, so everything is first moved by ``shift`` (default: the targets' median): a
+    capture far from its origin (geo-registered) keeps its precision.
+    """
+    o3d = require("open3d", "mesh")
+    origins, targets = np.asarray(origins, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+    shift = np.median(targets, axis=0) if shift is None else np.asarray(shift, dtype=np.float64)
+    offset = targets - origins
+    length = np.linalg.norm(offset, axis=1)
+    ok = length > tau
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(TriangleMesh(mesh.vertices - shift, mesh.faces).to_open3d_tensor())
+    rays = np.concatenate([origins[ok] - shift, offset[ok] / length[ok, None]], axis=1).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    prim = ans["primitive_ids"].numpy().astype(np.int64)
+    blocked = ans["t_hit"].numpy() < length[ok] - tau
+    return blocked, np.where(np.isfinite(ans["t_hit"].numpy()), prim, -1)
+
+
 def free_space_violation(
     mesh: TriangleMesh,
     points: Float[np.ndarray, "num_points 3"],
@@ -133,19 +161,10 @@ def free_space_violation(
         Open3D casts in float32, so everything is first moved to the points' median: a capture far
         from its origin (geo-registered) keeps its precision.
     """
-    o3d = require("open3d", "mesh")
     points, centers = np.asarray(points, dtype=np.float64), np.asarray(centers, dtype=np.float64)
     tau = 0.01 * robust_diagonal(points) if tau is None else float(tau)
-    shift = np.median(points, axis=0)
-    origin = centers[np.asarray(cam_idx, dtype=np.int64)] - shift
-    offset = points[np.asarray(point_idx, dtype=np.int64)] - shift - origin
-    length = np.linalg.norm(offset, axis=1)
-    ok = length > tau
-    direction = offset[ok] / length[ok, None]
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(TriangleMesh(mesh.vertices - shift, mesh.faces).to_open3d_tensor())
-    rays = np.concatenate([origin[ok], direction], axis=1).astype(np.float32)
-    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    blocked = t_hit < length[ok] - tau
+    origins = centers[np.asarray(cam_idx, dtype=np.int64)]
+    targets = points[np.asarray(point_idx, dtype=np.int64)]
+    blocked, _ = early_hits(mesh, origins, targets, tau, shift=np.median(points, axis=0))
     share = float(blocked.mean()) if len(blocked) else 0.0
     return {"free_space_violation": share, "sight_lines": int(len(blocked)), "free_space_tau": tau}
