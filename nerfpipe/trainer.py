@@ -82,8 +82,8 @@ def scene_info(scene: SceneData) -> SceneInfo:
     cams = scene.split_cameras("train")
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
     rel = (cams.fx.double() / (cams.width.double() ** 2 + cams.height.double() ** 2).sqrt()).reshape(-1)
-    med = rel.median() if len(rel) else rel.new_ones(())
-    spread = float((rel - med).abs().median() / med) if len(rel) > 1 else 0.0
+    q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
+    spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
                      unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread)
 

@@ -46,9 +46,10 @@ class SceneInfo:
     """A real capture: the photographs show more than the scene box (floor, walls, sky) and vary in
     exposure (inputs with sparse points from SfM and no alpha, e.g. COLMAP)."""
     focal_spread: float = 0.0
-    """Spread (median absolute deviation / median) of the training cameras' focal lengths relative to their
-    image diagonals: near 0 for one camera (0.02 on colmap_mouse, whose COLMAP model has one camera per
-    image), large for a collection of photographs from several cameras or zoom settings."""
+    """Spread (interquartile range / median) of the training cameras' focal lengths relative to their image
+    diagonals: near 0 for one camera (0.05 on colmap_mouse, whose COLMAP model has one camera per image),
+    large for a collection of photographs from several cameras or zoom settings (1.5 on the Sacre Coeur
+    photos)."""
 
 
 class Callback(Enum):

@@ -36,7 +36,7 @@ PRESETS: "dict[str, dict]" = {
 """Capacity presets: vertices per axis of each grid level along the box's longest side."""
 
 
-APPEARANCE_FOCAL_SPREAD = 0.1
+APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
 
