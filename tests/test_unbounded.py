@@ -82,13 +82,13 @@ def test_background_field_learns_a_wall_behind_the_box():
 
 
 def _model(num_images=4, **kw):
-    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=num_images, pixels_per_image=100, unbounded=True, focal_spread=0.3)
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=num_images, pixels_per_image=100, unbounded=True, focal_spread=1.0)
     return FastConfig(preset="small", **kw).setup(info)
 
 
 def test_real_capture_defaults_and_synthetic_defaults():
     info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100)
-    real = FastConfig(preset="small").setup(SceneInfo(**info, unbounded=True, focal_spread=0.3))
+    real = FastConfig(preset="small").setup(SceneInfo(**info, unbounded=True, focal_spread=1.0))
     session = FastConfig(preset="small").setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
     assert session.behind is not None and session.appearance is None  # one camera: no colour corrections
     synthetic = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True))
