@@ -1,14 +1,14 @@
-"""Cleaning and simplification of extracted meshes (pymeshlab), and face visibility (Open3D).
+"""Cleaning and simplification of extracted meshes (pymeshlab, scipy), and face visibility (Open3D).
 
-* :func:`remove_small_components` drops floaters: connected pieces whose bounding-box diagonal
-  is a small fraction of the whole mesh's;
+* :func:`remove_small_components` drops floaters: connected pieces (:func:`component_labels`) whose
+  bounding-box diagonal is a small fraction of the whole mesh's, or that lie far from the main piece;
 * :func:`faces_near_box_sides` marks the faces along the sides of the meshed box (fog walls);
 * :func:`visible_faces` marks the faces some training camera sees (a z-buffer test against
   a ray-cast depth map per camera), so faces no camera sees (inner blobs) can be dropped;
 * :func:`faces_blocking_sight_lines` marks the faces that camera-to-point sight lines of the sparse
   points' tracks cross before reaching their point (fog the cameras see through);
-* :func:`support_plane` finds the plane an object stands on (sparse points, cameras on one side) and
-  :func:`faces_on_or_below_plane` marks the mesh of that support;
+* :func:`support_plane` finds the plane an object stands on (a RANSAC plane under the sparse points,
+  cameras on one side) and :func:`faces_on_or_below_plane` marks the mesh of that support;
 * :func:`close_holes` fills holes up to a number of boundary edges;
 * :func:`simplify` runs quadric edge collapse to a target face count;
 * :func:`hausdorff_distance` measures what simplification changed.
@@ -21,7 +21,7 @@ from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.rays import camera_rays
-from nerfpipe.typing import Bool, Float
+from nerfpipe.typing import Bool, Float, Int
 
 
 def _meshset(mesh: TriangleMesh):
@@ -37,14 +37,60 @@ def _result(ms, mesh: TriangleMesh, **info) -> TriangleMesh:
     return out
 
 
-def remove_small_components(mesh: TriangleMesh, min_diameter_fraction: float = 0.05) -> TriangleMesh:
-    """Drop connected components whose diagonal is below ``min_diameter_fraction`` of the mesh's."""
-    pymeshlab = require("pymeshlab", "mesh")
-    ms = _meshset(mesh)
-    ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PercentageValue(100.0 * min_diameter_fraction), removeunref=True)
-    out = _result(ms, mesh)
+def component_labels(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_verts']]":
+    """Connected components (faces that share a vertex): how many labels there are and each vertex's label
+    (a face's is its first vertex's; an unreferenced vertex is a label of its own)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f, n = mesh.faces, mesh.num_vertices
+    edges = coo_matrix((np.ones(2 * len(f)), (np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]]))), shape=(n, n))
+    count, label = connected_components(edges, directed=False)
+    return int(count), label
+
+
+def remove_small_components(
+    mesh: TriangleMesh, min_diameter_fraction: float = 0.05, max_gap: "float | None" = None,
+    anchors: "Float[np.ndarray, 'num_anchors 3'] | None" = None,
+) -> TriangleMesh:
+    """Drop floaters: connected components whose bounding-box diagonal is below ``min_diameter_fraction`` of
+    the mesh's and, with ``max_gap``, those farther than ``max_gap`` from the main component.
+
+    The main component is the one nearest to the most ``anchors`` (e.g. the object's sparse points: the
+    object, not the largest sheet of fog), or the largest by area without anchors.
+    """
+    from scipy.spatial import cKDTree
+
+    if mesh.num_faces == 0:
+        return mesh
+    count, label = component_labels(mesh)
+    lo, hi = np.full((count, 3), np.inf), np.full((count, 3), -np.inf)
+    np.minimum.at(lo, label, mesh.vertices)
+    np.maximum.at(hi, label, mesh.vertices)
+    keep = np.linalg.norm(hi - lo, axis=1) >= min_diameter_fraction * mesh.diagonal()
+    if max_gap is not None:
+        main = _main_component(mesh, label, count, anchors)
+        others = np.flatnonzero((label != main) & keep[label])
+        gap, _ = cKDTree(mesh.vertices[label == main]).query(mesh.vertices[others], distance_upper_bound=max_gap)
+        near = np.bincount(label[others], weights=np.isfinite(gap), minlength=count) > 0
+        near[main] = True
+        keep &= near
+    out = mesh.submesh(keep[label[mesh.faces[:, 0]]])
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
     return out
+
+
+def _main_component(mesh: TriangleMesh, label, count: int, anchors) -> int:
+    """The component whose vertices are nearest to the most ``anchors``; the largest by area without them."""
+    from scipy.spatial import cKDTree
+
+    used = np.unique(mesh.faces)
+    if anchors is not None and len(anchors) > 0:
+        _, nearest = cKDTree(mesh.vertices[used]).query(np.asarray(anchors, dtype=np.float64))
+        return int(np.argmax(np.bincount(label[used[nearest]], minlength=count)))
+    v = mesh.vertices[mesh.faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    return int(np.argmax(np.bincount(label[mesh.faces[:, 0]], weights=area, minlength=count)))
 
 
 def faces_near_box_sides(mesh: TriangleMesh, aabb: Float[np.ndarray, "2 3"], distance: float) -> Bool[np.ndarray, "num_faces"]:
@@ -103,13 +149,17 @@ def _scaled(cameras: Cameras, max_side: int) -> Cameras:
     return Cameras(cameras.world_from_cam, cameras.fx * sx, cameras.fy * sy, cameras.cx * sx, cameras.cy * sy, w.long(), h.long(), cameras.distortion, cameras.dist_params)
 
 
-def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tolerance: "float | None" = None) -> Bool[np.ndarray, "num_faces"]:
+def visible_faces(
+    mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tolerance: "float | None" = None, front_only: bool = False,
+) -> Bool[np.ndarray, "num_faces"]:
     """Faces whose centre some camera sees: in its image and not behind the ray-cast surface.
 
     For each camera a depth map of the mesh is ray-cast at ``max_side`` pixels; a face is
     seen when its centre projects into the image at a depth within ``tolerance`` (default
     0.5% of the mesh diagonal) of the farthest ray-cast depth among the 3×3 pixels around it (lenient at silhouettes
-    and grazing angles; faces hidden behind a visible surface are still caught).
+    and grazing angles; faces hidden behind a visible surface are still caught). With ``front_only`` a face
+    counts only when the camera is on its outer side (counter-clockwise winding): a camera stands in free
+    space, so a face it sees from behind is the inside of a solid, seen through a hole in its front.
     """
     o3d = require("open3d", "mesh")
     scene = o3d.t.geometry.RaycastingScene()
@@ -117,6 +167,7 @@ def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tol
     cams = _scaled(cameras.reshape(-1).to(dtype=torch.float64), max_side)
     tol = 0.005 * mesh.diagonal() if tolerance is None else tolerance
     centres = torch.from_numpy(mesh.vertices[mesh.faces].mean(1))
+    normals = torch.from_numpy(mesh.face_normals())
     seen = torch.zeros(mesh.num_faces, dtype=torch.bool)
     for i in range(len(cams)):
         zbuf = _depth_map(scene, cams, i)
@@ -126,7 +177,10 @@ def visible_faces(mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tol
         inside = (z > 0) & (col >= 0) & (row >= 0) & (col < int(cams.width[i])) & (row < int(cams.height[i]))
         depth = torch.full_like(z, -1.0)
         depth[inside] = zbuf[row[inside], col[inside]]
-        seen |= inside & (z <= depth + tol)
+        visible = inside & (z <= depth + tol)
+        if front_only:
+            visible &= ((cams.world_from_cam[i, :3, 3] - centres) * normals).sum(-1) > 0
+        seen |= visible
     return seen.numpy()
 
 
@@ -169,57 +223,94 @@ def faces_blocking_sight_lines(
     targets: Float[np.ndarray, "num_lines 3"],
     tau: float,
     min_hits: int = 1,
+    keep_near: "Float[np.ndarray, 'num_points 3'] | None" = None,
 ) -> Bool[np.ndarray, "num_faces"]:
     """Faces that the cameras see through: the first face a camera-to-point sight line hits when that hit
     lies more than ``tau`` before the point (the point was photographed, so nothing can stand there).
 
     Only the first hit of each line is counted; callers repeat after removing the faces to peel
-    fog in layers. A face is marked once ``min_hits`` lines hit it early.
+    fog in layers. A face is marked once ``min_hits`` lines hit it early, unless its centre lies within
+    ``tau`` of one of the points ``keep_near``: that is the surface the points lie on, which a line seeing
+    its point at a grazing angle crosses early when the surface sits a little in front of the points.
     """
+    from scipy.spatial import cKDTree
+
     from nerfpipe.mesh.metrics import early_hits
 
     blocked, face = early_hits(mesh, origins, targets, tau)
-    hits = np.bincount(face[blocked], minlength=mesh.num_faces)
-    return hits >= min_hits
+    marked = np.bincount(face[blocked], minlength=mesh.num_faces) >= min_hits
+    if keep_near is not None and len(keep_near) > 0 and marked.any():
+        centres = mesh.vertices[mesh.faces[marked]].mean(axis=1)
+        near = cKDTree(np.asarray(keep_near, dtype=np.float64)).query(centres, distance_upper_bound=tau)[0] < tau
+        marked[np.flatnonzero(marked)[near]] = False
+    return marked
 
 
 def support_plane(
     candidates: Float[np.ndarray, "num_candidates 3"], points: Float[np.ndarray, "num_points 3"],
-    centers: Float[np.ndarray, "num_cameras 3"], tolerance: float,
-    min_inliers: float = 0.03, cameras_above: float = 0.95, points_above: float = 0.95, tries: int = 6, seed: int = 0,
+    centers: Float[np.ndarray, "num_cameras 3"], tolerance: float, normals: "Float[np.ndarray, 'num_candidates 3'] | None" = None,
+    min_inliers: float = 0.05, cameras_above: float = 0.95, points_above: float = 0.98, max_angle_deg: float = 25.0,
+    hypotheses: int = 4000, seed: int = 0,
 ) -> "Float[np.ndarray, '4'] | None":
-    """The plane an object stands on: a RANSAC plane (Open3D ``segment_plane``) through at least
-    ``min_inliers`` of the ``candidates`` (surface samples and/or sparse points; a white table has few
-    sparse points but a large flat surface), with ``cameras_above`` of the cameras on one side and
-    ``points_above`` of the sparse ``points`` on that side or on it (it bounds the scene from below).
-    The planes are tried by size, each found plane's inliers set aside, up to ``tries`` of them.
+    """The plane an object stands on: of the planes with ``cameras_above`` of the cameras on one side and
+    ``points_above`` of the object's sparse ``points`` on that side or within ``tolerance`` of it (a plane
+    that bounds the object from below, seen from above), the one with the most ``candidates`` within
+    ``tolerance``: RANSAC over planes through three candidates, refined by least squares on its inliers.
+
+    Candidates are surface samples and sparse points: a white table has few sparse points but a flat
+    surface, a textured one many. The side tests are made inside the RANSAC loop, because Open3D's
+    ``segment_plane`` only returns the largest plane, which on a capture is often a face of the object
+    or a slice of fog.
 
     Returns:
         ``(a, b, c, d)`` with a unit normal and ``a x + b y + c z + d > 0`` on the cameras' side; None
-        when no plane qualifies (e.g. a free-standing object, or an object seen from all around).
+        when no plane qualifies or none holds ``min_inliers`` of the candidates (a free-standing object, an
+        object seen from all around, a scene without a dominant plane).
     """
-    o3d = require("open3d", "mesh")
-    points = np.asarray(points, dtype=np.float64)
-    centers = np.asarray(centers, dtype=np.float64)
-    rest = np.asarray(candidates, dtype=np.float64)
-    total = len(rest)
-    o3d.utility.random.seed(seed)
-    for _ in range(tries):
-        if len(rest) < max(50, min_inliers * total):
-            return None
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        plane, inliers = cloud.segment_plane(distance_threshold=float(tolerance), ransac_n=3, num_iterations=1000)
-        if len(inliers) < min_inliers * total:
-            return None
-        plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
-        side = centers @ plane[:3] + plane[3]
-        if np.mean(side > 0) < 0.5:
-            plane, side = -plane, -side
-        height = points @ plane[:3] + plane[3]
-        if np.mean(side > 0) >= cameras_above and np.mean(height > -tolerance) >= points_above:
-            return plane
-        rest = np.delete(rest, np.asarray(inliers, dtype=np.int64), axis=0)
-    return None
+    cand = np.asarray(candidates, dtype=np.float64)
+    points, centers = np.asarray(points, dtype=np.float64), np.asarray(centers, dtype=np.float64)
+    if len(cand) < 3:
+        return None
+    tri = cand[np.random.default_rng(seed).integers(0, len(cand), size=(hypotheses, 3))]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    normal, tri = normal[length > 0] / length[length > 0, None], tri[length > 0]
+    planes = np.concatenate([normal, -(normal * tri[:, 0]).sum(axis=1, keepdims=True)], axis=1)
+    planes = planes[_bounds_from_below(planes, points, centers, tolerance, cameras_above, points_above)]
+    if len(planes) == 0:
+        return None
+    count = np.zeros(len(planes), dtype=np.int64)
+    for start in range(0, len(cand), 4096):  # candidates x planes, 4096 candidates at a time
+        count += _inliers(cand[start : start + 4096], None if normals is None else normals[start : start + 4096], planes, tolerance, max_angle_deg).sum(axis=0)
+    if count.max() < min_inliers * len(cand):
+        return None
+    best = planes[int(np.argmax(count))]
+    inliers = cand[_inliers(cand, normals, best[None], tolerance, max_angle_deg)[:, 0]]
+    centre = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centre, full_matrices=False)[2][-1]
+    refined = np.concatenate([normal, [-normal @ centre]])[None]
+    return refined[0] if _bounds_from_below(refined, points, centers, tolerance, cameras_above, points_above)[0] else best
+
+
+def _inliers(cand, normals, planes, tolerance: float, max_angle_deg: float) -> Bool[np.ndarray, "num_candidates num_planes"]:
+    """Candidates within ``tolerance`` of each plane and, where they have a normal, parallel to it within
+    ``max_angle_deg`` (a slice through fog crosses surfaces at all angles, a table lies in its plane)."""
+    near = np.abs(cand @ planes[:, :3].T + planes[:, 3]) < tolerance
+    if normals is None:
+        return near
+    flat = np.abs(normals @ planes[:, :3].T) > np.cos(np.radians(max_angle_deg))
+    return near & (flat | ~np.any(normals != 0, axis=1, keepdims=True))
+
+
+def _bounds_from_below(planes, points, centers, tolerance: float, cameras_above: float, points_above: float) -> Bool[np.ndarray, "num_planes"]:
+    """Turn each of ``planes`` (in place) towards the majority of the cameras; whether it has ``cameras_above``
+    of them strictly on that side and ``points_above`` of the points above ``-tolerance``."""
+    side = centers @ planes[:, :3].T + planes[:, 3]
+    flip = np.mean(side > 0, axis=0) < 0.5
+    planes[flip] *= -1
+    side[:, flip] *= -1
+    height = points @ planes[:, :3].T + planes[:, 3]
+    return (np.mean(side > 0, axis=0) >= cameras_above) & (np.mean(height > -tolerance, axis=0) >= points_above)
 
 
 def faces_on_or_below_plane(mesh: TriangleMesh, plane: Float[np.ndarray, "4"], tolerance: float) -> Bool[np.ndarray, "num_faces"]:

@@ -27,6 +27,7 @@ from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
 from nerfpipe.mesh.extract import DensityFn, OccupancyFn, Volume, auto_level, level_from_surface_points, mesh_volume, sample_volume
 from nerfpipe.mesh.level import choose_level
+from nerfpipe.mesh.metrics import robust_diagonal
 from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
 from nerfpipe.scene import Similarity
@@ -72,21 +73,39 @@ class MeshConfig:
     box_sides: float = 2.0
     """Drop faces within this many voxels of the meshed box's sides (background painted on the box: fog walls); 0: keep."""
     support_plane: bool = True
-    """Object captures: drop the plane the object stands on (the dominant plane of the sparse points, all
-    cameras on one side of it) and whatever lies below it; needs sparse points."""
+    """Object captures: drop the plane the object stands on and whatever lies below it (after the unseen faces
+    are gone). The plane bounds the object's sparse points (those in the meshed box) from below, 98% of them
+    above it, has 95% of the cameras on one side, and holds at least 5% of the surface samples (lying in it,
+    normals within 25 degrees) and sparse points; of such planes the one holding the most (RANSAC, see
+    :func:`nerfpipe.mesh.clean.support_plane`). Faces within ``support_tolerance`` above it go with it. Needs
+    sparse points; an object seen from all around, or standing on a surface the field did not make a surface
+    (a white table under fog), keeps everything. mesh.json records ``support_plane`` (world frame, None when
+    none qualified), ``support_plane_input_frame`` and ``support_faces_removed``."""
     support_tolerance: float = 0.01
-    """Faces up to this height above the support plane go with it (fraction of the sparse points' robust
-    extent diagonal); also the RANSAC inlier distance."""
+    """Faces up to this height above the support plane go with it (fraction of the robust extent diagonal of
+    the sparse points on the object); also the RANSAC inlier distance."""
     free_space_passes: int = 3
-    """Peel fog: drop the faces that the sparse points' sight lines (camera to observed point) hit more than
-    1% of the points' extent before the point, this many times (each pass exposes the next layer); 0: keep;
-    needs track observations (COLMAP)."""
+    """Fog the cameras see through: drop the faces that a sparse point's sight line (camera to observed point)
+    crosses more than ``free_space_slack`` before the point, but for faces within that distance of a sparse
+    point (the surface the points lie on, crossed early by lines that see it at a grazing angle); each pass
+    removes the first face each line crosses, exposing the next layer, until no line is blocked or this many
+    passes. 0: keep. Needs track observations (COLMAP)."""
+    free_space_slack: float = 0.03
+    """How far before its point a sight line may cross the mesh (fraction of the sparse points' robust extent
+    diagonal): the surface a point lies on is noisy and the 5%-opacity level puts it a voxel or two in front of
+    the points, so at the free-space metric's 1% the passes would eat the surface itself."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
     min_component: float = 0.05
     """Drop connected pieces whose diagonal is below this fraction of the mesh's (floaters)."""
+    max_gap: float = 0.05
+    """Drop connected pieces farther than this fraction of the mesh's diagonal from the main one (the piece the
+    most sparse points of the object lie on; the largest without sparse points); 0: keep them."""
     remove_unseen: bool = True
     """Drop faces no training camera sees (inner blobs); needs the training cameras."""
+    remove_unseen_from_behind: bool = True
+    """With ``remove_unseen``: a face counts as seen only from its outer side, so the inside of a blob or of
+    the object's shell, seen through a hole in its front, goes too (the red of mesh_views.png)."""
     close_holes: int = 0
     """Fill holes with at most this many boundary edges (0: leave holes)."""
     colors: bool = True
@@ -164,22 +183,27 @@ def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) 
 
 
 def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None, lines=None) -> TriangleMesh:
+    """Box sides, fog seen through, unseen faces, support plane, floaters and distant pieces, holes (MeshConfig)."""
     figures["faces_extracted"] = mesh.num_faces
     if cfg.box_sides > 0 and aabb is not None:
         near = faces_near_box_sides(mesh, aabb.double().cpu().numpy(), cfg.box_sides * figures["voxel_size"])
         figures["box_side_faces_removed"] = int(near.sum())
         mesh = mesh.submesh(~near)
-    if lines is not None:
-        mesh = _object_only(mesh, cfg, cameras, lines, figures)
+    points = None if lines is None else _object_points(lines.points, aabb)
+    if points is not None and cfg.free_space_passes > 0:
+        mesh = _peel_fog(mesh, cfg, lines, points, cfg.free_space_slack * robust_diagonal(points), figures)
     if cfg.remove_unseen and cameras is not None:
         start = time.perf_counter()
-        seen = visible_faces(mesh, cameras)
+        seen = visible_faces(mesh, cameras, front_only=cfg.remove_unseen_from_behind)
         figures.update(unseen_faces_removed=int((~seen).sum()), seconds_visibility=time.perf_counter() - start)
         if seen.any():
             mesh = mesh.submesh(seen)
-    if cfg.min_component > 0:
+    if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
+        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures)
+    if cfg.min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
-        mesh = remove_small_components(mesh, cfg.min_component)
+        gap = cfg.max_gap * mesh.diagonal() if cfg.max_gap > 0 else None
+        mesh = remove_small_components(mesh, cfg.min_component, gap, points)
         figures["floater_faces_removed"] = before - mesh.num_faces
     if cfg.close_holes > 0:
         mesh = close_holes(mesh, cfg.close_holes)
@@ -188,31 +212,43 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
     return mesh
 
 
-def _object_only(mesh: TriangleMesh, cfg: MeshConfig, cameras, lines, figures: dict) -> TriangleMesh:
-    """The support plane and the fog that sight lines pass through, removed (see MeshConfig)."""
-    from nerfpipe.mesh.metrics import robust_diagonal, sample_surface
+def _object_points(points: Float[np.ndarray, "num_points 3"], aabb) -> "Float[np.ndarray, 'num_object 3'] | None":
+    """The sparse points inside the meshed box (all of them without a box); None when fewer than 20."""
+    points = np.asarray(points, dtype=np.float64)
+    if aabb is not None:
+        lo, hi = aabb.double().cpu().numpy()
+        points = points[np.all((points >= lo) & (points <= hi), axis=1)]
+    return points if len(points) >= 20 else None
 
-    extent = robust_diagonal(lines.points)
-    if cfg.support_plane and cameras is not None and mesh.num_faces > 0:
-        centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
-        candidates = np.concatenate([sample_surface(mesh, 20_000)[0], lines.points])
-        plane = support_plane(candidates, lines.points, centers, cfg.support_tolerance * extent)
-        figures["support_plane"] = None if plane is None else [round(float(v), 6) for v in plane]
-        if plane is not None:
-            below = faces_on_or_below_plane(mesh, plane, cfg.support_tolerance * extent)
-            figures["support_faces_removed"] = int(below.sum())
-            if not below.all():
-                mesh = mesh.submesh(~below)
-    removed = 0
-    origins, targets = lines.segments()
+
+def _peel_fog(mesh: TriangleMesh, cfg: MeshConfig, lines, points, slack: float, figures: dict) -> TriangleMesh:
+    """Remove the faces that sight lines cross more than ``slack`` before their point, layer by layer (but
+    for those next to a sparse point of the object)."""
+    removed, origins, targets = 0, *lines.segments()
     for _ in range(cfg.free_space_passes):
-        blocking = faces_blocking_sight_lines(mesh, origins, targets, 0.01 * extent)
+        blocking = faces_blocking_sight_lines(mesh, origins, targets, slack, keep_near=points)
         if not blocking.any() or blocking.all():
             break
         removed += int(blocking.sum())
         mesh = mesh.submesh(~blocking)
-    figures["free_space_faces_removed"] = removed
+    figures.update(free_space_faces_removed=removed, free_space_slack_world=slack)
     return mesh
+
+
+def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict) -> TriangleMesh:
+    """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane."""
+    from nerfpipe.mesh.metrics import sample_surface
+
+    centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
+    samples, normals = sample_surface(mesh, 20_000)
+    candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
+    plane = support_plane(candidates, points, centers, tolerance, normals)
+    figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
+    if plane is None:
+        return mesh
+    below = faces_on_or_below_plane(mesh, plane, tolerance)
+    figures["support_faces_removed"] = int(below.sum())
+    return mesh if below.all() else mesh.submesh(~below)
 
 
 def _simplify(mesh: TriangleMesh, target: "int | None", figures: dict) -> TriangleMesh:
@@ -289,5 +325,13 @@ def write_meshes(out: MeshOutputs, out_dir: "str | Path", world_from_input: Simi
     record = {**out.figures, "frame": "input", "world_from_input": {"rotation": world_from_input.rotation.tolist(),
               "translation": world_from_input.translation.tolist(), "scale": float(world_from_input.scale)},
               "bounds_input_frame": full.bounds().tolist(), "load": os.getloadavg()[0]}
+    if out.figures.get("support_plane") is not None:
+        record["support_plane_input_frame"] = plane_in_input_frame(np.asarray(out.figures["support_plane"]), world_from_input).tolist()
     atomic_write_bytes(paths["mesh.json"], (json.dumps(record, indent=2) + "\n").encode())
     return paths
+
+
+def plane_in_input_frame(plane: Float[np.ndarray, "4"], world_from_input: Similarity) -> Float[np.ndarray, "4"]:
+    """A world-frame plane ``n . x + d = 0`` (unit ``n``) in the input frame, unit normal, same side positive."""
+    r, t = world_from_input.rotation.double().numpy(), world_from_input.translation.double().numpy()
+    return np.concatenate([r.T @ plane[:3], [(plane[:3] @ t + plane[3]) / world_from_input.scale]])

@@ -1,0 +1,187 @@
+"""The mesh of the object alone: the support plane and what lies below it, fog that sight lines cross,
+pieces far from the object, faces seen only from behind; objects without a support keep everything."""
+
+import math
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from nerfpipe.cameras import Cameras
+from nerfpipe.mesh.clean import faces_blocking_sight_lines, faces_on_or_below_plane, remove_small_components, support_plane, visible_faces
+from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.mesh.metrics import sample_surface
+from nerfpipe.mesh.pipeline import MeshConfig, build_meshes, plane_in_input_frame
+from nerfpipe.mesh.reference import SightLines
+from nerfpipe.mesh.views import look_at
+from nerfpipe.scene import Similarity
+
+
+def sphere(radius: float, center=(0.0, 0.0, 0.0), subdivisions: int = 4) -> TriangleMesh:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions, radius=radius)
+    return TriangleMesh(s.vertices + np.asarray(center), s.faces)
+
+
+def square(z: float, half: float = 1.5, n: int = 30) -> TriangleMesh:
+    """The square ``|x|, |y| <= half`` at height ``z``, normal +z, 2 n² triangles."""
+    x, y = np.meshgrid(np.linspace(-half, half, n + 1), np.linspace(-half, half, n + 1), indexing="ij")
+    verts = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    i = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    return TriangleMesh(verts, np.concatenate([np.stack([i, i + n + 1, i + 1], 1), np.stack([i + 1, i + n + 1, i + n + 2], 1)]))
+
+
+def merge(*meshes: TriangleMesh) -> TriangleMesh:
+    offsets = np.cumsum([0] + [m.num_vertices for m in meshes[:-1]])
+    return TriangleMesh(np.concatenate([m.vertices for m in meshes]), np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]))
+
+
+def ring(n: int = 12, radius: float = 3.0, heights=(1.5,)) -> np.ndarray:
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.concatenate([np.stack([radius * np.cos(a), radius * np.sin(a), np.full(n, h)], 1) for h in heights])
+
+
+def cameras_at(centers: np.ndarray, target=(0.0, 0.0, 0.3), size: int = 64) -> Cameras:
+    mats = np.stack([look_at(c, np.asarray(target, dtype=np.float64), np.array([0.0, 0.0, 1.0])) for c in centers])
+    f = size / (2 * math.tan(math.radians(30)))
+    return Cameras.create(mats, f, f, size / 2, size / 2, size, size, dtype=torch.float64)
+
+
+def observations(points, normals, centers):
+    """Sight lines from every camera to the points on their side of the surface."""
+    cam, pt = np.nonzero(((centers[:, None] - points[None]) * normals[None]).sum(-1) > 0)
+    return SightLines(points=points, centers=centers, point_idx=pt, cam_idx=cam)
+
+
+def candidates(mesh: TriangleMesh, points: np.ndarray):
+    samples, normals = sample_surface(mesh, 20_000)
+    return np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
+
+
+def test_the_plane_an_object_stands_on_is_found_and_removed():
+    ball, table = sphere(0.5, (0.0, 0.0, 0.5)), square(0.0)  # the ball rests on z = 0
+    scene, cams = merge(ball, table), ring()
+    points = sample_surface(ball, 800, seed=1)[0]  # sparse points on the object only: a white table
+    cand, normals = candidates(scene, points)
+    plane = support_plane(cand, points, cams, 0.02, normals)
+    assert plane is not None and plane[2] > 0.999 and abs(plane[3]) < 0.01  # +z, towards the cameras
+    below = faces_on_or_below_plane(scene, plane, 0.02)
+    assert below[ball.num_faces :].all()  # the whole table goes
+    assert below[: ball.num_faces].mean() < 0.03  # the ball stays, but for the 2 % cap within the tolerance
+    textured = np.concatenate([points, sample_surface(table, 1500, seed=2)[0]])  # table points too: same plane
+    cand, normals = candidates(scene, textured)
+    np.testing.assert_allclose(support_plane(cand, textured, cams, 0.02, normals), plane, atol=0.01)
+
+
+def test_no_support_plane_without_one():
+    ball, cams = sphere(0.5, (0.0, 0.0, 0.5)), ring()
+    points = sample_surface(ball, 800, seed=1)[0]
+    cand, normals = candidates(ball, points)
+    assert support_plane(cand, points, cams, 0.02, normals) is None  # a lone ball: a cap holds at most 2 tol / diameter
+    scene = merge(ball, square(0.0))
+    cand, normals = candidates(scene, points)
+    all_around = ring(heights=(1.5, -1.5))  # seen from below too: the table is not a support
+    assert support_plane(cand, points, all_around, 0.02, normals) is None
+    rng = np.random.default_rng(0)  # fog: a slab of triangles at random orientations under the ball
+    corners = rng.uniform([-1.5, -1.5, -0.3], [1.5, 1.5, 0.0], size=(20_000, 1, 3))
+    fog = TriangleMesh((corners + rng.normal(scale=0.03, size=(20_000, 3, 3))).reshape(-1, 3), np.arange(60_000).reshape(-1, 3))
+    cand, normals = candidates(merge(ball, fog), points)
+    assert support_plane(cand, points, cams, 0.02, normals) is None  # slices of fog are not surfaces
+
+
+def test_plane_in_input_frame():
+    rot = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    world_from_input = Similarity(rot, torch.tensor([0.5, 0.0, -2.0], dtype=torch.float64), 2.0)
+    plane = np.array([0.0, 0.6, 0.8, -0.3])
+    x_input = np.random.default_rng(0).normal(size=(10, 3))
+    x_world = world_from_input.apply_points(torch.from_numpy(x_input)).numpy()
+    back = plane_in_input_frame(plane, world_from_input)
+    np.testing.assert_allclose(np.linalg.norm(back[:3]), 1.0)
+    np.testing.assert_allclose(x_input @ back[:3] + back[3], (x_world @ plane[:3] + plane[3]) / 2.0, atol=1e-12)
+
+
+def test_fog_that_sight_lines_cross_is_peeled_and_the_surface_kept():
+    ball, fog = sphere(0.5), sphere(1.0)  # a shell around the ball: every camera sees the ball through it
+    scene = merge(ball, fog)
+    pts, normals = sample_surface(ball, 8000, seed=2)  # about 2 cm apart
+    origins, targets = observations(pts, normals, ring()).segments()
+    blocking = faces_blocking_sight_lines(scene, origins, targets, 0.03, keep_near=pts)
+    assert not blocking[: ball.num_faces].any()  # the ball is where the lines end: never blocking
+    assert blocking[ball.num_faces :].mean() > 0.3  # the shell is crossed on every side the cameras look through
+    inflated = TriangleMesh(ball.vertices * 1.02, ball.faces)  # the surface 1 cm in front of its points
+    assert faces_blocking_sight_lines(inflated, origins, targets, 0.03).mean() > 0.5  # grazing lines cross it early (0.64)
+    assert faces_blocking_sight_lines(inflated, origins, targets, 0.03, keep_near=pts).mean() < 0.005  # next to its points (0.0014)
+
+
+def test_pieces_far_from_the_object_go_and_near_ones_stay():
+    obj = sphere(0.5)
+    near = sphere(0.2, (0.75, 0.0, 0.0), subdivisions=3)  # 5 cm from the object: a part of it
+    far_sheet = square(0.0, half=1.0, n=20)
+    far_sheet.vertices += np.array([5.0, 0.0, 0.0])  # larger than the object, 4.5 away, no sparse point on it
+    scene = merge(obj, near, far_sheet)
+    anchors = sample_surface(merge(obj, near), 500, seed=3)[0]
+    out = remove_small_components(scene, 0.01, max_gap=0.2, anchors=anchors)
+    assert out.num_faces == obj.num_faces + near.num_faces
+    assert out.info["floater_faces_removed"] == far_sheet.num_faces
+    by_area = remove_small_components(scene, 0.01, max_gap=0.2)  # without anchors the largest piece is the main one
+    assert by_area.num_faces == far_sheet.num_faces
+
+
+def test_faces_seen_only_from_behind_are_unseen():
+    shell = sphere(1.0)
+    open_front = shell.submesh(shell.vertices[shell.faces].mean(1)[:, 0] < 0.7)  # a hole facing +x
+    cams = cameras_at(np.array([[4.0, y, z] for y in (-0.3, 0.3) for z in (-0.3, 0.3)]), target=(0.0, 0.0, 0.0))
+    back_wall = open_front.vertices[open_front.faces].mean(1)[:, 0] < -0.5  # seen through the hole, from inside
+    assert visible_faces(open_front, cams)[back_wall].mean() > 0.5
+    assert not visible_faces(open_front, cams, front_only=True)[back_wall].any()
+
+
+def ball_on_table(points: torch.Tensor) -> torch.Tensor:
+    """Density: a ball of radius 0.35 resting on a table (the half-space z < 0)."""
+    inside = ((points - torch.tensor([0.0, 0.0, 0.35], dtype=points.dtype)).norm(dim=-1) < 0.35) | (points[..., 2] < 0)
+    return inside.to(points.dtype) * 100.0
+
+
+def test_pipeline_meshes_the_ball_not_the_table():
+    aabb = torch.tensor([[-1.0, -1.0, -0.3], [1.0, 1.0, 1.0]])
+    centers = ring(heights=(1.2, 2.0))
+    ball = sphere(0.35, (0.0, 0.0, 0.35))
+    pts, normals = sample_surface(ball, 2000, seed=4)
+    pts, normals = pts[pts[:, 2] > 0.05], normals[pts[:, 2] > 0.05]
+    cfg = MeshConfig(resolution=64, level=50.0, colors=False)
+    out = build_meshes(cfg, aabb, density_fn=ball_on_table, cameras=cameras_at(centers), sight_lines=observations(pts, normals, centers))
+    assert out.figures["support_plane"] is not None and out.figures["support_faces_removed"] > 0
+    voxel = out.figures["voxel_size"]
+    assert out.full.vertices[:, 2].min() > 0.0  # nothing of the table is left
+    dist = np.abs(np.linalg.norm(out.full.vertices - [0.0, 0.0, 0.35], axis=1) - 0.35)
+    assert dist.max() < voxel  # only the ball
+    kept = sample_surface(ball, 5000, seed=5)[0]
+    kept = kept[kept[:, 2] > 0.1]  # above the support band
+    assert np.mean(cKDTree(out.full.vertices).query(kept)[0] < 2 * voxel) > 0.99  # and all of it
+    free = build_meshes(cfg, aabb, density_fn=lambda p: ball_on_table(p) * (p[..., 2] >= 0),
+                        cameras=cameras_at(ring(heights=(1.2, -1.2))), sight_lines=observations(pts, normals, centers))
+    assert free.figures["support_plane"] is None and "support_faces_removed" not in free.figures
+
+
+def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):
+    """Real cameras and sparse points: the white table under the mouse carries (almost) no sparse point,
+    so the points alone give no support plane; the same scene with points on a table under the mouse does."""
+    from data_adapters import load
+
+    from nerfpipe.mesh.metrics import robust_diagonal
+    from nerfpipe.mesh.trained import crop_to_points
+
+    scene = load(scene_path("colmap_mouse"))
+    xyz, centers = scene.points.xyz.double().numpy(), scene.cameras.centers.double().reshape(-1, 3).numpy()
+    lo, hi = crop_to_points(scene.aabb, scene.points.xyz, 0.05).double().numpy()
+    obj = xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)]
+    tol = 0.01 * robust_diagonal(obj)
+    assert support_plane(obj, obj, centers, tol, min_inliers=0.05) is None
+    rng = np.random.default_rng(0)
+    floor = np.quantile(obj[:, 2], 0.005) - tol  # world +z is the cameras' mean up
+    table = np.column_stack([rng.uniform(lo[0], hi[0], 1500), rng.uniform(lo[1], hi[1], 1500), floor + rng.normal(scale=tol / 4, size=1500)])
+    both = np.concatenate([obj, table])
+    plane = support_plane(both, both, centers, tol, min_inliers=0.05)
+    assert plane is not None and plane[2] > 0.999 and abs(plane[3] + floor) < tol / 2
+    assert np.all(centers @ plane[:3] + plane[3] > 0)  # every camera above it
