@@ -7,6 +7,7 @@
 
 import dataclasses
 import json
+import types
 import typing
 from pathlib import Path
 
@@ -32,8 +33,19 @@ def from_dict(cls: type, data: dict):
     kwargs = {}
     for key, value in data.items():
         hint = hints[key]
-        kwargs[key] = from_dict(hint, value) if dataclasses.is_dataclass(hint) and isinstance(value, dict) else value
+        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+            value = from_dict(hint, value)
+        elif isinstance(value, list) and _accepts_tuple(hint):
+            value = tuple(value)  # JSON has no tuples
+        kwargs[key] = value
     return cls(**kwargs)
+
+
+def _accepts_tuple(hint) -> bool:
+    """Whether a type hint is a tuple, or a union with one (e.g. ``tuple[int, ...] | None``)."""
+    if typing.get_origin(hint) is tuple or hint is tuple:
+        return True
+    return any(_accepts_tuple(a) for a in typing.get_args(hint)) if typing.get_origin(hint) in (typing.Union, types.UnionType) else False
 
 
 def read_config(run_dir: Path) -> dict:
