@@ -31,7 +31,7 @@ def check_world_from_cam(m, path: "str | Path", what: str = "poses") -> np.ndarr
     try:
         m = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise NerfpipeError(f"{what} are not numeric 4x4 matrices ({exc})", path) from None
+        raise NerfpipeError(f"{what} are not numeric 4x4 matrices ({exc})", path) from exc
     if m.ndim != 3 or m.shape[1:] not in ((3, 4), (4, 4)):
         raise NerfpipeError(f"{what} must have shape [N, 4, 4] or [N, 3, 4], not {list(m.shape)}", path)
     bad = np.flatnonzero(~np.isfinite(m).all(axis=(1, 2)))

@@ -82,7 +82,7 @@ def _open(model_dir: Path):
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises RuntimeError/ValueError for unreadable models
-        raise NerfpipeError(f"cannot read COLMAP model ({type(exc).__name__}: {exc})", model_dir) from None
+        raise NerfpipeError(f"cannot read COLMAP model ({type(exc).__name__}: {exc})", model_dir) from exc
 
 
 def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
@@ -105,7 +105,7 @@ def _image_size(path: Path) -> "tuple[int, int]":
         with Image.open(path) as im:
             return im.size
     except Exception as exc:  # PIL raises several types for unreadable files
-        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", path) from None
+        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", path) from exc
 
 
 def _check_image(path: Path, cam) -> None:

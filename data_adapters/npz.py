@@ -59,7 +59,7 @@ def _load_arrays(file: Path) -> "dict[str, np.ndarray]":
         with np.load(file, allow_pickle=False) as data:
             return {k: np.asarray(data[k]) for k in data.files}
     except Exception as exc:  # zipfile, zlib, numpy format and pickle errors all mean "unreadable"
-        raise NerfpipeError(f"cannot read npz file ({type(exc).__name__}: {exc})", file) from None
+        raise NerfpipeError(f"cannot read npz file ({type(exc).__name__}: {exc})", file) from exc
 
 
 def _require(arrays: dict, keys: "tuple[str, ...]", layout: str, file: Path) -> None:

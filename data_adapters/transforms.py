@@ -93,7 +93,7 @@ def _load_json(file: Path) -> dict:
     try:
         doc = json.loads(file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise NerfpipeError(f"cannot read JSON ({type(exc).__name__}: {exc})", file) from None
+        raise NerfpipeError(f"cannot read JSON ({type(exc).__name__}: {exc})", file) from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
         raise NerfpipeError("not a transforms file: no 'frames' list at the top level", file)
     return doc
@@ -154,7 +154,7 @@ def _image_shape(image: Path) -> "tuple[int, int, int]":
     try:
         shape = tuple(iio.improps(image).shape)
     except Exception as exc:  # imageio raises many types for corrupt files
-        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", image) from None
+        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", image) from exc
     return (*shape[:2], shape[2] if len(shape) == 3 else 1)
 
 
@@ -212,7 +212,7 @@ def _cameras(frames: "list[_Frame]", file: Path) -> "tuple[Cameras, list[str], b
             model, code, params = _distortion(f.intrinsics, file)
             cx, cy = float(f.intrinsics.get("cx", w / 2)), float(f.intrinsics.get("cy", h / 2))
         except (TypeError, ValueError) as exc:
-            raise NerfpipeError(f"non-numeric intrinsics for {f.image.name} ({exc})", file) from None
+            raise NerfpipeError(f"non-numeric intrinsics for {f.image.name} ({exc})", file) from exc
         for key, v in zip(cols, (fx, fy, cx, cy, w, h, int(code), params)):
             cols[key].append(v)
         models.append(model)
@@ -267,7 +267,7 @@ def _read_points(doc: dict, file: Path) -> "Points3D | None":
         if colors is None or len(colors) != len(xyz):
             colors = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
     except Exception as exc:  # trimesh raises many types for malformed files
-        raise NerfpipeError(f"cannot read point cloud ({type(exc).__name__}: {exc})", ply) from None
+        raise NerfpipeError(f"cannot read point cloud ({type(exc).__name__}: {exc})", ply) from exc
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0 or not np.isfinite(xyz).all():
         raise NerfpipeError(f"point cloud has no finite xyz points (shape {list(xyz.shape)})", ply)
     rgb = np.full((len(xyz), 3), 128, np.uint8) if colors is None or len(colors) != len(xyz) else np.asarray(colors)[:, :3]

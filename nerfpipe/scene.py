@@ -160,7 +160,7 @@ def read_image_uint8(path: Path) -> np.ndarray:
         img = np.asarray(iio.imread(path))
     except Exception as exc:  # imageio raises many types for corrupt files
         first_line = (str(exc).strip().splitlines() or [""])[0]  # imageio's messages span many lines
-        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {first_line})", path) from None
+        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {first_line})", path) from exc
     if img.dtype == np.uint16:
         img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
     elif img.dtype != np.uint8:

@@ -264,7 +264,7 @@ class Pipeline:
         try:
             doc = tomllib.loads(path.read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise NerfpipeError(f"cannot read pipeline file ({type(exc).__name__}: {exc})", path) from None
+            raise NerfpipeError(f"cannot read pipeline file ({type(exc).__name__}: {exc})", path) from exc
         chain = doc.pop("stages", None)
         if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain) or not chain:
             raise NerfpipeError("a pipeline file needs 'stages = [\"load\", ...]', a list of stage names", path)

@@ -89,3 +89,15 @@ def test_subprocess(tmp_path):
     run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert run.returncode == 2 and "Traceback" not in run.stderr
     assert run.stderr.strip().count("\n") == 0 and str(culprit) in run.stderr and "FULL_OPENCV" in run.stderr
+
+
+def test_clean_errors_keep_their_cause_for_debug(tmp_path):
+    """One line for the user, but ``--debug`` can still show what the library raised (``from exc``)."""
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.scene import read_image_uint8
+
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    with pytest.raises(NerfpipeError) as info:
+        read_image_uint8(bad)
+    assert info.value.__cause__ is not None and "broken.png" in str(info.value)

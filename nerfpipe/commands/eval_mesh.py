@@ -71,4 +71,4 @@ def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
     try:
         return reference_figures(pred, gt, points, threshold, samples, crop, gt_prefix="gt_mesh_", sight_lines=sight_lines(scene))
     except NerfpipeError as exc:
-        raise NerfpipeError(exc.problem, ref) from None
+        raise NerfpipeError(exc.problem, ref) from exc

@@ -62,8 +62,8 @@ def _parse_size(text: str) -> "tuple[int, int]":
 
     try:
         w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise NerfpipeError(f"--size must be WxH, e.g. 800x800 (got '{text}')") from None
+    except ValueError as exc:
+        raise NerfpipeError(f"--size must be WxH, e.g. 800x800 (got '{text}')") from exc
     if w <= 0 or h <= 0:
         raise NerfpipeError(f"--size must be positive (got '{text}')")
     return w, h

@@ -111,7 +111,7 @@ def close_holes(mesh: TriangleMesh, max_hole_edges: int = 30) -> TriangleMesh:
     try:
         ms.meshing_close_holes(maxholesize=int(max_hole_edges))
     except Exception as exc:  # pymeshlab raises PyMeshLabException on non-manifold input
-        raise NerfpipeError(f"closing holes failed: {exc}") from None
+        raise NerfpipeError(f"closing holes failed: {exc}") from exc
     return _result(ms, mesh)
 
 

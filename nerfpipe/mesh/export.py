@@ -49,7 +49,7 @@ def read_mesh(path: "str | Path") -> TriangleMesh:
     try:
         m = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files
-        raise NerfpipeError(f"cannot read mesh ({type(exc).__name__}: {exc})", path) from None
+        raise NerfpipeError(f"cannot read mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise NerfpipeError("file holds no triangles", path)
     colors = None
