@@ -321,6 +321,8 @@ class Pipeline:
             reconstruction: an in-memory ``pycolmap.Reconstruction`` to use as the input.
             images: its images: a folder, or ``{image name: uint8 array [H, W, 3]}``.
         """
+        if time_budget is not None and not time_budget > 0:  # before anything is written (NaN included)
+            raise NerfpipeError(f"--time-budget must be a positive number of seconds, got {time_budget}")
         cache = dict(cache or {})
         cache.update({k: v for k, v in (("reconstruction", reconstruction), ("images", images)) if v is not None})
         ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=cache)

@@ -77,6 +77,19 @@ class TrainerConfig:
     write_outputs: bool = True
     """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
 
+    def __post_init__(self) -> None:
+        """Impossible values are one clear error before anything runs or is written (not a run that never ends)."""
+        checks = (
+            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step >= 1, "at least 1"),
+            ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
+            ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
+            ("time_budget", self.time_budget is None or self.time_budget > 0, "positive seconds"),
+            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", self.video_frames >= 0, "0 or more"),
+        )
+        for name, ok, what in checks:
+            if not ok:
+                raise NerfpipeError(f"--{name.replace('_', '-')} must be {what}, got {getattr(self, name)}")
+
 
 def scene_info(scene: SceneData) -> SceneInfo:
     cams = scene.split_cameras("train")

@@ -101,3 +101,25 @@ def test_clean_errors_keep_their_cause_for_debug(tmp_path):
     with pytest.raises(NerfpipeError) as info:
         read_image_uint8(bad)
     assert info.value.__cause__ is not None and "broken.png" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "args, name",
+    [
+        (["train", "{data}", "--time-budget", "-5"], "--time-budget"),
+        (["train", "{data}", "--rays-per-step", "0"], "--rays-per-step"),
+        (["train", "{data}", "--iters", "-1"], "--iters"),
+        (["run", "{data}", "--time-budget", "-5"], "--time-budget"),
+        (["run", "{data}", "--time-budget", "nan"], "--time-budget"),
+    ],
+)
+def test_impossible_parameters_are_one_line_and_write_nothing(tmp_path, scene_path, capsys, args, name):
+    from nerfpipe.cli import main
+
+    data = str(scene_path("lego_200x200") / "lego_200x200.npz")
+    out = tmp_path / "out"
+    argv = [a.replace("{data}", data) for a in args] + ["--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and name in err[0]
+    assert not out.exists()
