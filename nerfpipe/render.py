@@ -24,6 +24,8 @@ class RenderedView:
     """Expected distance along the ray ``sum w t`` (not divided by ``acc``)."""
     acc: Float[Tensor, "H W"]
     """Accumulated opacity."""
+    stop_depth: "Float[Tensor, 'H W'] | None" = None
+    """Where the ray stops (``RenderOutputs.stop_depth``), NaN where it does not; None when the model does not give it."""
 
     @property
     def surface_depth(self) -> Float[Tensor, "H W"]:
@@ -33,13 +35,19 @@ class RenderedView:
 
 def render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: int = 4096) -> "tuple[Tensor, Tensor, Tensor]":
     """Render a flat batch of rays in chunks; returns ``(rgb [N,3], depth [N], acc [N])``."""
-    out = {"rgb": [], "depth": [], "acc": []}
+    return _render_rays(model, rays, background, chunk)[:3]
+
+
+def _render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: int) -> "tuple[Tensor, Tensor, Tensor, Tensor | None]":
+    """:func:`render_rays` plus the stop depth (None when the model does not give it)."""
+    out = {"rgb": [], "depth": [], "acc": [], "stop_depth": []}
     for start in range(0, len(rays), chunk):
         part = rays[start : start + chunk]
         res = model.get_outputs(part, background.to(part.origins).expand(len(part), 3))
         for key in out:
             out[key].append(getattr(res, key))
-    return tuple(torch.cat(out[k]) for k in ("rgb", "depth", "acc"))
+    stop = None if any(m is None for m in out["stop_depth"]) else torch.cat(out["stop_depth"])
+    return (*(torch.cat(out[k]) for k in ("rgb", "depth", "acc")), stop)
 
 
 @torch.no_grad()
@@ -62,8 +70,9 @@ def render_cameras(
         for i in range(len(cameras)):
             rays = camera_rays(cameras, i)
             h, w = rays.shape
-            rgb, depth, acc = render_rays(model, rays.reshape(h * w), background, chunk)
-            views.append(RenderedView(rgb.reshape(h, w, 3).clamp(0, 1), depth.reshape(h, w), acc.reshape(h, w)))
+            rgb, depth, acc, stop = _render_rays(model, rays.reshape(h * w), background, chunk)
+            stop = None if stop is None else stop.reshape(h, w)
+            views.append(RenderedView(rgb.reshape(h, w, 3).clamp(0, 1), depth.reshape(h, w), acc.reshape(h, w), stop))
     finally:
         model.train(was_training)
     return views

@@ -83,7 +83,7 @@ class TrainerConfig:
             ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step >= 1, "at least 1"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
-            ("time_budget", self.time_budget is None or self.time_budget > 0, "positive seconds"),
+            ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
             ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", self.video_frames >= 0, "0 or more"),
         )
         for name, ok, what in checks:

@@ -83,7 +83,7 @@ def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
     scene, model = ctx.get("scene"), ctx.get("model")
     seconds_left = ctx.time_left()
     cfg = budgeted(config.mesh, seconds_left)
-    result = mesh_model(cfg, model, scene, config.views, ctx.device)
+    result = mesh_model(cfg, model, scene, config.views, ctx.device, seconds_left)
     result.figures.update(resolution_requested=config.mesh.resolution, seconds_left_at_start=seconds_left)
     full = to_input_frame(result.full, scene.world_from_input)
     figures = evaluate(config, ctx, scene, full, result.figures["box_world"]) if config.evaluate else None

@@ -62,7 +62,7 @@ def fake_run(tmp_path, monkeypatch):
 def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, capsys):
     import trimesh
 
-    assert main(["mesh", str(fake_run), "--method", method, "--resolution", "64", "--faces", "1500", "--tsdf-size", "48", "--level", "200"]) == 0
+    assert main(["mesh", str(fake_run), "--method", method, "--resolution", "64", "--faces", "1500", "--tsdf-size", "48", *(["--level", "200"] if method == "mc" else [])]) == 0
     figures = json.loads(capsys.readouterr().out)
     out = fake_run / "mesh"
     assert sorted(p.name for p in out.iterdir()) == ["mesh.json", "mesh.ply", "mesh_simplified.ply", "mesh_views.png"]
@@ -76,10 +76,10 @@ def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, ca
 
 
 def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
-    assert main(["mesh", str(fake_run), "--resolution", "32", "--level", "1e6"]) == 2
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--level", "1e6", "--method", "mc"]) == 2
     assert "outside the density range" in capsys.readouterr().err
     assert main(["mesh", str(fake_run), "--resolution", "32", "--faces", "100000000"]) == 2
-    assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "quantile", "--level", "1e6"]) == 2
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "quantile", "--level", "1e6", "--method", "mc"]) == 2
     assert "not below" in capsys.readouterr().err
     assert not (fake_run / "mesh").exists()
 
@@ -119,7 +119,7 @@ def trimesh_load(path):
 
 @pytest.mark.parametrize("rule", ["agreement", "quantile"])
 def test_level_from_rendered_depth(fake_run, capsys, rule):
-    assert main(["mesh", str(fake_run), "--resolution", "48", "--faces", "1000", "--level-from", rule]) == 0
+    assert main(["mesh", str(fake_run), "--resolution", "48", "--faces", "1000", "--level-from", rule, "--method", "mc"]) == 0
     figures = json.loads(capsys.readouterr().out)
     assert figures["level_rule"] == rule
     if rule == "quantile":  # the density at expected depth: 200 on the sphere model's surface

@@ -117,7 +117,7 @@ def test_bad_input_fails_with_a_clear_message(field, points, message):
 
 
 def test_pipeline_records_the_candidates_and_needs_points():
-    cfg = MeshConfig(resolution=RES, remove_unseen=False, level_from="agreement")
+    cfg = MeshConfig(method="mc", resolution=RES, remove_unseen=False, level_from="agreement")
     out = build_meshes(cfg, BOX, density_fn=soft_sphere, surface_points=sphere_points(500))
     f = out.figures
     assert f["level_rule"] == "agreement" and f["level"] == pytest.approx(50.0, rel=0.1)
@@ -125,7 +125,7 @@ def test_pipeline_records_the_candidates_and_needs_points():
     assert any(c["level"] == f["level"] for c in f["level_candidates"])
     with pytest.raises(NerfpipeError, match="needs rendered surface points"):
         build_meshes(cfg, BOX, density_fn=soft_sphere)
-    assert build_meshes(MeshConfig(resolution=33, level_from="opacity", remove_unseen=False), BOX, density_fn=soft_sphere).figures["level_rule"] == "opacity"
+    assert build_meshes(MeshConfig(method="mc", resolution=33, level_from="opacity", remove_unseen=False), BOX, density_fn=soft_sphere).figures["level_rule"] == "opacity"
 
 
 def test_median_depth_points_are_where_rays_become_half_opaque():
@@ -150,7 +150,7 @@ def test_median_depth_points_are_where_rays_become_half_opaque():
 def test_default_level_is_five_percent_of_a_voxel_opaque():
     import math
 
-    out = build_meshes(MeshConfig(resolution=33, remove_unseen=False), BOX, density_fn=soft_sphere)
+    out = build_meshes(MeshConfig(method="mc", resolution=33, remove_unseen=False), BOX, density_fn=soft_sphere)
     f = out.figures
     assert f["level_rule"] == "opacity" and f["level_opacity"] == 0.05
     assert f["level"] == pytest.approx(-math.log(0.95) / f["voxel_size"])

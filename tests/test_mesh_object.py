@@ -50,8 +50,8 @@ def test_fog_wall_is_dropped_by_the_pipeline():
         paint = torch.sigmoid((p[:, 0] - 0.95) / 0.01)
         return 100.0 * torch.maximum(blob, paint)
 
-    keep = build_meshes(MeshConfig(resolution=48, level=50.0, remove_unseen=False, box_sides=0.0, min_component=0.0), BOX, density_fn=field)
-    cut = build_meshes(MeshConfig(resolution=48, level=50.0, remove_unseen=False, min_component=0.0), BOX, density_fn=field)
+    keep = build_meshes(MeshConfig(method="mc", resolution=48, level=50.0, remove_unseen=False, box_sides=0.0, min_component=0.0), BOX, density_fn=field)
+    cut = build_meshes(MeshConfig(method="mc", resolution=48, level=50.0, remove_unseen=False, min_component=0.0), BOX, density_fn=field)
     assert keep.full.vertices[:, 0].max() > 0.9
     radii = np.linalg.norm(cut.full.vertices, axis=1)
     assert np.abs(radii - 0.5).max() < 0.01 and cut.figures["box_side_faces_removed"] > 0
@@ -109,7 +109,7 @@ def test_resolution_for_budget_steps_down_with_the_time_left():
 def test_mesh_stage_lowers_the_resolution_under_a_short_budget():
     from plugins.mesh import budgeted
 
-    cfg = MeshConfig(resolution=256)
+    cfg = MeshConfig(method="mc", resolution=256)
     assert budgeted(cfg, None).resolution == 256
     assert budgeted(cfg, 2 * mesh_seconds(192) + 1).resolution == 192
     assert budgeted(MeshConfig(method="tsdf", resolution=256), 0.0).resolution == 256  # tsdf: untouched

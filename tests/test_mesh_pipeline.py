@@ -33,7 +33,7 @@ def world_from_input() -> Similarity:
 def test_marching_cubes_post_stage_writes_input_frame_meshes(tmp_path):
     import trimesh
 
-    cfg = MeshConfig(resolution=64, faces=2000, remove_unseen=False, min_component=0.1, level_from="opacity", level_opacity=0.5)
+    cfg = MeshConfig(method="mc", resolution=64, faces=2000, remove_unseen=False, min_component=0.1, level_from="opacity", level_opacity=0.5)
     out = build_meshes(cfg, BOX, density_fn=blob, rgb_fn=rgb)
     assert out.figures["floater_faces_removed"] > 0 and out.full.to_trimesh().body_count == 1
     assert out.simplified.num_faces <= 2000 and 0 < out.figures["hausdorff_max"] < 0.05
@@ -51,16 +51,16 @@ def test_marching_cubes_post_stage_writes_input_frame_meshes(tmp_path):
 
 
 def test_small_mesh_with_default_target_is_copied(tmp_path):
-    out = build_meshes(MeshConfig(resolution=32, remove_unseen=False, level_from="opacity"), BOX, density_fn=blob)
+    out = build_meshes(MeshConfig(method="mc", resolution=32, remove_unseen=False, level_from="opacity"), BOX, density_fn=blob)
     assert out.simplified.num_faces == out.full.num_faces and out.figures["hausdorff_max"] == 0.0
 
 
 @pytest.mark.parametrize(
     "cfg, density, message",
     [
-        (MeshConfig(resolution=32, level_from="opacity"), lambda p: torch.zeros(len(p)), "empty"),
-        (MeshConfig(resolution=32, level=1e6), blob, "outside the density range"),
-        (MeshConfig(resolution=32, faces=10**7, level_from="opacity"), blob, "not below the mesh's"),
+        (MeshConfig(method="mc", resolution=32, level_from="opacity"), lambda p: torch.zeros(len(p)), "empty"),
+        (MeshConfig(method="mc", resolution=32, level=1e6), blob, "outside the density range"),
+        (MeshConfig(method="mc", resolution=32, faces=10**7, level_from="opacity"), blob, "not below the mesh's"),
     ],
 )
 def test_bad_input_fails_before_anything_is_written(tmp_path, cfg, density, message):
@@ -71,7 +71,7 @@ def test_bad_input_fails_before_anything_is_written(tmp_path, cfg, density, mess
 
 
 def test_files_list_is_what_gets_written(tmp_path):
-    out = build_meshes(MeshConfig(resolution=32, remove_unseen=False, level_from="opacity"), BOX, density_fn=blob)
+    out = build_meshes(MeshConfig(method="mc", resolution=32, remove_unseen=False, level_from="opacity"), BOX, density_fn=blob)
     write_meshes(out, tmp_path, Similarity())
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(FILES)
 

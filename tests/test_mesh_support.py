@@ -149,7 +149,7 @@ def test_pipeline_meshes_the_ball_not_the_table():
     ball = sphere(0.35, (0.0, 0.0, 0.35))
     pts, normals = sample_surface(ball, 2000, seed=4)
     pts, normals = pts[pts[:, 2] > 0.05], normals[pts[:, 2] > 0.05]
-    cfg = MeshConfig(resolution=64, level=50.0, colors=False)
+    cfg = MeshConfig(method="mc", resolution=64, level=50.0, colors=False)
     out = build_meshes(cfg, aabb, density_fn=ball_on_table, cameras=cameras_at(centers), sight_lines=observations(pts, normals, centers))
     assert out.figures["support_plane"] is not None and out.figures["support_faces_removed"] > 0
     voxel = out.figures["voxel_size"]

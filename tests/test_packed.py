@@ -112,3 +112,29 @@ def test_extreme_densities_stay_finite(sigma):
     w.sum().backward()
     assert torch.isfinite(w).all() and torch.isfinite(s.grad).all()
     assert torch.allclose(w.view(2, 3).sum(-1), torch.full((2,), 0.0 if sigma == 0 else 1.0))
+
+
+def test_quantile_depth_matches_a_fine_scan(device):
+    """The median depth equals where a brute-force scan of the piecewise-linear opacity crosses 0.5 (per ray,
+    loop over a fine grid of distances); rays that never reach it are NaN; a thin fog in front does not move it."""
+    from nerfpipe.functional.packed import quantile_depth_packed
+
+    g = torch.Generator().manual_seed(3)
+    lengths = (6, 0, 3, 9)
+    w = torch.rand(sum(lengths), generator=g, dtype=torch.float64) * 0.3
+    edges = [torch.sort(torch.rand(k + 1, generator=g, dtype=torch.float64) * 4).values for k in lengths]
+    t0, t1 = torch.cat([e[:-1] for e in edges]), torch.cat([e[1:] for e in edges])
+    ri = torch.repeat_interleave(torch.arange(len(lengths)), torch.tensor(lengths))
+    out = quantile_depth_packed(w.to(device), t0.to(device), t1.to(device), ri.to(device), len(lengths)).cpu()
+    for r in range(len(lengths)):
+        wr, a, b = w[ri == r], t0[ri == r], t1[ri == r]
+        if float(wr.sum()) < 0.5:
+            assert torch.isnan(out[r])
+            continue
+        ts = torch.linspace(0, 4, 40001, dtype=torch.float64)
+        opacity = sum(wi * ((ts - ai) / (bi - ai)).clamp(0, 1) for wi, ai, bi in zip(wr, a, b))
+        assert abs(float(out[r]) - float(ts[int(torch.nonzero(opacity >= 0.5)[0])])) < 2e-4
+    fog = torch.tensor([0.02] * 10 + [0.8]), torch.arange(11.0), torch.arange(11.0) + 1  # fog, then a surface in [10, 11]
+    expected = (fog[0] * (fog[1] + 0.5)).sum() / fog[0].sum()
+    median = quantile_depth_packed(*fog, torch.zeros(11, dtype=torch.long), 1)
+    assert abs(float(median) - 10.375) < 1e-5 and float(expected) < 9.6  # the fog pulls the mean out of the surface, not the median

@@ -9,7 +9,7 @@ from tyro.conf import Positional
 
 def mesh(
     run_dir: Annotated[Path, Positional, tyro.conf.arg(metavar="RUN_DIR")],
-    method: Literal["mc", "tsdf"] = "mc",
+    method: Literal["mc", "tsdf"] = "tsdf",
     resolution: int = 256,
     faces: "int | None" = None,
     level: "float | None" = None,
@@ -32,7 +32,7 @@ def mesh(
 
     Args:
         run_dir: a run folder written by nerfpipe train.
-        method: mc (marching cubes on the density) or tsdf (fuse depth rendered from training views).
+        method: tsdf (fuse the depth where rendered training rays stop; the default) or mc (marching cubes on the density).
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).
         level: density iso-level for mc (default: chosen by --level-from).
@@ -55,10 +55,13 @@ def mesh(
 
     import torch
 
+    from nerfpipe.errors import NerfpipeError
     from nerfpipe.mesh.pipeline import MeshConfig, write_meshes
     from nerfpipe.mesh.trained import RenderedViews, mesh_model
     from nerfpipe.runs import load_run
 
+    if level is not None and method != "mc":
+        raise NerfpipeError("--level sets the marching-cubes iso-level: add --method mc")
     if threads is not None:
         torch.set_num_threads(threads)
     scene, model, _ = load_run(Path(run_dir), device)

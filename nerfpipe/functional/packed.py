@@ -120,6 +120,31 @@ def composite_packed(
     return rgb, sums[:, 4], acc
 
 
+def quantile_depth_packed(
+    weights: Float[Tensor, "num_samples"],
+    t_starts: Float[Tensor, "num_samples"],
+    t_ends: Float[Tensor, "num_samples"],
+    ray_indices: Int[Tensor, "num_samples"],
+    num_rays: int,
+    quantile: float = 0.5,
+) -> Float[Tensor, "num_rays"]:
+    """Distance at which each ray's accumulated opacity reaches ``quantile`` (the median depth at 0.5:
+    where the ray stops, which a thin fog in front of a surface does not move, unlike the expected depth
+    ``sum w t / sum w``); linear within the sample that crosses it. NaN for rays that never reach it.
+
+    Example:
+        >>> w = torch.tensor([0.2, 0.6, 0.2, 0.3])
+        >>> quantile_depth_packed(w, torch.tensor([0.0, 1.0, 2.0, 0.0]), torch.tensor([1.0, 2.0, 3.0, 1.0]), torch.tensor([0, 0, 0, 1]), 2).tolist()
+        [1.5, nan]
+    """
+    before = exclusive_segment_cumsum(weights, ray_indices)
+    crossing = (before < quantile) & (before + weights >= quantile)
+    frac = ((quantile - before) / weights.clamp(min=torch.finfo(weights.dtype).tiny)).clamp(0.0, 1.0)
+    t = t_starts + frac * (t_ends - t_starts)
+    sums = accumulate_packed(torch.stack([torch.where(crossing, t, torch.zeros_like(t)), crossing.to(t.dtype)], dim=-1), ray_indices, num_rays)
+    return torch.where(sums[:, 1] > 0, sums[:, 0], torch.full_like(sums[:, 0], float("nan")))
+
+
 def distortion_loss_packed(
     weights: Float[Tensor, "num_samples"],
     t_starts: Float[Tensor, "num_samples"],

@@ -41,8 +41,11 @@ FILES = ("mesh.ply", "mesh_simplified.ply", "mesh_views.png", "mesh.json")
 class MeshConfig:
     """How a mesh is extracted, cleaned and simplified."""
 
-    method: Literal["mc", "tsdf"] = "mc"
-    """mc: marching cubes on the density field; tsdf: fuse depth rendered from the training cameras."""
+    method: Literal["mc", "tsdf"] = "tsdf"
+    """tsdf (default): fuse the depth at which rendered training rays stop (the model's stop opacity), so the
+    surface sits where the photographs see it and fog that rays pass through leaves nothing; on colmap_mouse
+    95% -> 98% of the sparse points near the mesh and free-space violation 0.65 -> 0.035 over mc. mc: marching
+    cubes on the density field (closed shells, also where no camera looks, but fog becomes surface)."""
     resolution: int = 256
     """Grid samples along the longest side of the box (mc), or TSDF voxels along it (tsdf)."""
     level: "float | None" = None

@@ -23,10 +23,17 @@ class RenderedViews:
     """Longer side in pixels of the tsdf depth renders."""
     chunk: int = 4096
     """Rays per forward pass when rendering."""
+    min_views: int = 8
+    """Under a time budget, fewer TSDF views are rendered (evenly spread), but never fewer than this."""
+    budget_share: float = 0.5
+    """Under a time budget, the TSDF depth renders take at most this share of the time left (timed on the first view)."""
 
 
-def mesh_model(cfg: MeshConfig, model, scene, views: "RenderedViews | None" = None, device: str = "cpu") -> MeshOutputs:
-    """Extract, clean, colour and simplify the mesh of ``model`` trained on ``scene`` (world frame)."""
+def mesh_model(
+    cfg: MeshConfig, model, scene, views: "RenderedViews | None" = None, device: str = "cpu", seconds: "float | None" = None
+) -> MeshOutputs:
+    """Extract, clean, colour and simplify the mesh of ``model`` trained on ``scene`` (world frame); with
+    ``seconds`` (the time left), the TSDF renders as many views as fit ``views.budget_share`` of it."""
     import torch
 
     from nerfpipe.mesh.pipeline import build_meshes
@@ -38,16 +45,20 @@ def mesh_model(cfg: MeshConfig, model, scene, views: "RenderedViews | None" = No
     train = scene.split_cameras("train")
     frame_fn, tsdf_cams = None, None
     if cfg.method == "tsdf":
-        tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device)
+        budget = None if seconds is None else views.budget_share * seconds
+        tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device, budget, views.min_views)
     depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from != "opacity"
     points, origins = surface_points(model, train, views.chunk, device) if depth_level else (None, None)
     from nerfpipe.mesh.reference import sight_lines
 
     lines = sight_lines(scene, frame="world")
     with torch.no_grad():
-        return build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
+        out = build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
                             cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
                             sight_lines=lines)
+    if tsdf_cams is not None:
+        out.figures.update(tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
+    return out
 
 
 def crop_to_points(aabb, xyz, margin: float, quantile: float = 0.02):
@@ -93,9 +104,12 @@ def surface_points(model, train, chunk: int, device: str, views: int = 8, size: 
     return torch.cat(pts), torch.cat(origins)
 
 
-def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str):
-    """Undistorted, resized training cameras and a ``frame_fn`` rendering their depth and colour."""
+def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, seconds: "float | None" = None, min_views: int = 8):
+    """Undistorted, resized training cameras (``views`` of them, evenly spread) and a ``frame_fn`` rendering
+    their depth and colour. With ``seconds``, the first view is rendered and timed, and only as many views as
+    fit in ``seconds`` are kept (at least ``min_views``)."""
     import dataclasses
+    import time
 
     import numpy as np
     import torch
@@ -103,18 +117,39 @@ def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str):
     from nerfpipe.rays import camera_rays
     from nerfpipe.render import render_cameras
 
-    idx = torch.from_numpy(np.unique(np.linspace(0, len(train) - 1, min(views, len(train))).round().astype(np.int64)))
-    cams = train[idx]
-    cams = dataclasses.replace(cams, distortion=torch.zeros_like(cams.distortion), dist_params=torch.zeros_like(cams.dist_params))
-    cams = resize_each(cams, size / torch.maximum(cams.width, cams.height).double())
+    def spread(n: int):  # evenly spread training views; the first is always train[0]
+        return torch.from_numpy(np.unique(np.linspace(0, len(train) - 1, min(n, len(train))).round().astype(np.int64)))
+
+    base = dataclasses.replace(train, distortion=torch.zeros_like(train.distortion), dist_params=torch.zeros_like(train.dist_params))
+    base = resize_each(base, size / torch.maximum(base.width, base.height).double())
+    cams, cache = base[spread(views)], {}
 
     def frame(i: int):
+        if i in cache:
+            return cache.pop(i)
         view = render_cameras(model, cams[i : i + 1].to(device), chunk)[0]
-        depth = torch.where(view.acc > 0.5, view.surface_depth, torch.zeros_like(view.depth)).cpu()
+        depth = stop_depth(view).nan_to_num(0.0).cpu()
         z = depth * camera_rays(cams, i).z_scale
         return z.double().numpy(), (view.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
+    if seconds is not None and len(cams) > min_views:
+        start = time.perf_counter()
+        first = frame(0)
+        fit = int(seconds / max(time.perf_counter() - start, 1e-3))
+        if fit < len(cams):
+            cams = base[spread(max(min_views, fit))]
+        cache[0] = first  # the same camera: spread() always starts with train[0]
     return cams, frame
+
+
+def stop_depth(view):
+    """Where each pixel's ray stops: the model's stop depth when it gives one, else the expected depth of
+    rays more than half opaque; NaN where the ray does not stop."""
+    import torch
+
+    if view.stop_depth is not None:
+        return view.stop_depth
+    return torch.where(view.acc > 0.5, view.surface_depth, torch.full_like(view.depth, float("nan")))
 
 
 def resize_each(cams, scale):

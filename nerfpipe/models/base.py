@@ -26,6 +26,9 @@ class RenderOutputs:
     """Expected distance along the ray (``sum w_i t_i``; divide by ``acc`` for the surface)."""
     acc: Float[Tensor, "*bs"]
     """Accumulated opacity ``sum w_i`` in [0, 1]."""
+    stop_depth: "Float[Tensor, '*bs'] | None" = None
+    """Where the ray stops: the distance at which its accumulated opacity reaches the model's stop opacity
+    (NaN where it never does); set by models that render packed samples, outside training."""
     num_samples: int = 0
     """Samples evaluated by the field for this batch (for cost reports)."""
     extras: "dict[str, Tensor]" = field(default_factory=dict)

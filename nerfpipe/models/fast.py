@@ -23,7 +23,7 @@ from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ra
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
-from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, render_weights_packed
+from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
 from nerfpipe.rays import RayBundle
 from nerfpipe.typing import Float, Tensor
@@ -91,6 +91,11 @@ class FastConfig:
     """Early ray termination: samples behind this transmittance are not shaded."""
     min_alpha: float = 1e-4
     """Samples less opaque than this are not shaded (after warm-up)."""
+    stop_opacity: float = 0.3
+    """Rendered rays count as stopped where their accumulated opacity reaches this (``RenderOutputs.stop_depth``:
+    the depth that TSDF meshes fuse). Below 0.5 because a trained surface is a soft shell whose front is where
+    the photographs see it: on the synthetic demo 0.3 / 0.4 / 0.5 gave F-score 0.973 / 0.966 / 0.957 and
+    free-space violation 0.037 / 0.022 / 0.012; colmap_mouse's violation 0.035 at 0.3 and 0.013 at 0.5."""
     early_termination: bool = True
     """Evaluate the density-only pass in rounds and stop each ray once opaque (False: evaluate every
     marched sample; the same samples are kept either way)."""
@@ -260,8 +265,11 @@ class FastModel(Model):
             extras["distortion"] = distortion_loss_packed(
                 weights, samples.t_starts, samples.t_ends, samples.ray_indices, len(flat)
             ).mean()
+        stop = None
+        if not self.training:
+            stop = quantile_depth_packed(weights, samples.t_starts, samples.t_ends, samples.ray_indices, len(flat), self.cfg.stop_opacity).view(shape)
         return RenderOutputs(
-            rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape),
+            rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape), stop_depth=stop,
             num_samples=len(samples), extras=extras,
         )
 
