@@ -131,3 +131,19 @@ def test_level_from_rendered_depth(fake_run, capsys, rule):
     radii = 2.0 * np.linalg.norm(full.vertices - centre, axis=1)  # world units (scale 2)
     front = RADIUS + (0.017 if rule == "agreement" else 0.0)  # where the surface was put
     assert abs(radii.mean() - front) < 0.5 * figures["voxel_size"]
+
+
+def test_tsdf_views_follow_the_time_budget():
+    """With a budget, the first view is timed and only the views that fit are kept (never fewer than
+    min_views; evenly spread from the first); without one, all requested; frames are the same either way."""
+    from nerfpipe.mesh.trained import tsdf_frames
+
+    scene, model = sphere_scene(), SphereModel()
+    train = scene.split_cameras("train")
+    cams, frame = tsdf_frames(model, train, 12, 32, 4096, "cpu")
+    assert len(cams) == 12
+    tight, tight_frame = tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e-9, min_views=3)
+    assert len(tight) == 3 and torch.equal(tight.world_from_cam[0], cams.world_from_cam[0])
+    depth, rgb = tight_frame(0)
+    assert np.array_equal(depth, frame(0)[0]) and (depth > 0).any()
+    assert len(tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e6)[0]) == 12
