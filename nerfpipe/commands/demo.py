@@ -5,7 +5,7 @@ on it through the same :class:`nerfpipe.stages.Pipeline`, with demo-sized option
 from pathlib import Path
 
 
-def demo_configs(train_seconds: float, mesh_resolution: int = 192, frames: int = 36) -> dict:
+def demo_configs(train_seconds: float, mesh_resolution: int = 256, frames: int = 36) -> dict:
     """Stage options of the demo: a time-capped ``fast`` training on the scene's white background.
 
     The background must be white: the images have no alpha, so the trainer's ``auto`` mode would
