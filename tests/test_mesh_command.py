@@ -147,3 +147,22 @@ def test_tsdf_views_follow_the_time_budget():
     depth, rgb = tight_frame(0)
     assert np.array_equal(depth, frame(0)[0]) and (depth > 0).any()
     assert len(tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e6)[0]) == 12
+
+
+class FoggySphereModel(SphereModel):
+    """The sphere behind fog: the expected depth is pulled to the front, the stop depth stays on the sphere."""
+
+    def get_outputs(self, rays, background):
+        out = super().get_outputs(rays, background)
+        stop = torch.where(out.acc > 0, out.depth, torch.full_like(out.depth, float("nan")))
+        return RenderOutputs(rgb=out.rgb, depth=0.8 * out.depth, acc=out.acc, stop_depth=stop)
+
+
+def test_tsdf_fuses_where_rays_stop_not_the_fog_pulled_mean():
+    from nerfpipe.mesh.pipeline import MeshConfig
+    from nerfpipe.mesh.trained import RenderedViews, mesh_model
+
+    cfg = MeshConfig(resolution=48, remove_unseen=False, colors=False, min_component=0.0, max_gap=0.0)
+    out = mesh_model(cfg, FoggySphereModel(), sphere_scene(), RenderedViews(tsdf_views=12, tsdf_size=48))
+    radius = np.linalg.norm(out.full.vertices, axis=1)
+    assert out.figures["method"] == "tsdf" and abs(np.median(radius) - RADIUS) < 0.02  # the mean depth would put it at ~0.3 or less
