@@ -149,6 +149,21 @@ def test_tsdf_views_follow_the_time_budget():
     assert len(tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e6)[0]) == 12
 
 
+def test_tsdf_renders_smaller_views_rather_than_too_few(monkeypatch):
+    """A frame takes 1 s on the test clock; 3 s fit 3 views: 2 x min_views = 6 views are rendered at
+    sqrt(3/6) of the size instead."""
+    import itertools
+    import time
+
+    from nerfpipe.mesh.trained import tsdf_frames
+
+    clock = itertools.count()
+    monkeypatch.setattr(time, "perf_counter", lambda: float(next(clock)))
+    cams, frame = tsdf_frames(SphereModel(), sphere_scene().split_cameras("train"), 12, 32, 4096, "cpu", seconds=3.0, min_views=3)
+    assert len(cams) == 6 and int(cams.width[0]) == round(32 * 0.5**0.5)
+    assert frame(0)[0].shape == (int(cams.height[0]), int(cams.width[0]))
+
+
 class FoggySphereModel(SphereModel):
     """The sphere behind fog: the expected depth is pulled to the front, the stop depth stays on the sphere."""
 

@@ -107,7 +107,8 @@ def surface_points(model, train, chunk: int, device: str, views: int = 8, size: 
 def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, seconds: "float | None" = None, min_views: int = 8):
     """Undistorted, resized training cameras (``views`` of them, evenly spread) and a ``frame_fn`` rendering
     their depth and colour. With ``seconds``, the first view is rendered and timed, and only as many views as
-    fit in ``seconds`` are kept (at least ``min_views``)."""
+    fit in ``seconds`` are kept: when fewer than ``2 min_views`` fit, that many are rendered smaller (down to half
+    the size), else at least ``min_views``."""
     import dataclasses
     import time
 
@@ -136,9 +137,16 @@ def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, se
         start = time.perf_counter()
         first = frame(0)
         fit = int(seconds / max(time.perf_counter() - start, 1e-3))
-        if fit < len(cams):
+        want = min(len(cams), 2 * min_views)
+        if fit < want and fit / want >= 0.25:  # rather twice min_views views down to half the size than fewer sharp ones
+            shrink = (fit / want) ** 0.5  # a render costs about its pixel count
+            base = resize_each(base, torch.full((len(base),), shrink, dtype=torch.float64))
+            cams = base[spread(want)]
+        elif fit < len(cams):
             cams = base[spread(max(min_views, fit))]
-        cache[0] = first  # the same camera: spread() always starts with train[0]
+            cache[0] = first  # the same camera: spread() always starts with train[0]
+        else:
+            cache[0] = first
     return cams, frame
 
 
