@@ -14,7 +14,7 @@ def mesh(
     faces: "int | None" = None,
     level: "float | None" = None,
     level_from: Literal["agreement", "quantile", "opacity"] = "opacity",
-    min_component: float = 0.05,
+    min_component: "float | None" = None,
     remove_unseen: bool = True,
     close_holes: int = 0,
     colors: bool = True,
@@ -40,7 +40,7 @@ def mesh(
             is 5% blocked), quantile (the 0.1 quantile of the density where the rays of 8 rendered training
             views end) or agreement (of log-spaced candidate levels, the one whose surface is closest to
             those points; candidates and scores go to mesh.json).
-        min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters).
+        min_component: drop pieces smaller than this fraction of the mesh's diagonal (floaters; default 0.01 with tsdf, 0.05 with mc).
         remove_unseen: drop faces no training camera sees.
         close_holes: fill holes of at most this many edges (0: off).
         colors: vertex colours from the field (mc) or the rendered images (tsdf).

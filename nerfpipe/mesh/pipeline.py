@@ -104,8 +104,10 @@ class MeshConfig:
     the points, so at the free-space metric's 1% the passes would eat the surface itself."""
     faces: "int | None" = None
     """Face count of mesh_simplified.ply; default 100000 (a copy when the mesh is already smaller)."""
-    min_component: float = 0.05
-    """Drop connected pieces whose diagonal is below this fraction of the mesh's (floaters)."""
+    min_component: "float | None" = None
+    """Drop connected pieces whose diagonal is below this fraction of the mesh's (floaters). Default: 0.01 with
+    tsdf (fog leaves no floaters there; 0.05 dropped the parts of the demo's base seen from below: F-score 0.967
+    -> 0.976), 0.05 with mc."""
     max_gap: float = 0.05
     """Drop connected pieces farther than this fraction of the mesh's diagonal from the main one (the piece the
     most sparse points of the object lie on; the largest without sparse points); 0: keep them."""
@@ -208,10 +210,11 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
             mesh = mesh.submesh(seen)
     if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
         mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share)
-    if cfg.min_component > 0 or cfg.max_gap > 0:
+    min_component = cfg.min_component if cfg.min_component is not None else (0.01 if cfg.method == "tsdf" else 0.05)
+    if min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
         gap = cfg.max_gap * mesh.diagonal() if cfg.max_gap > 0 else None
-        mesh = remove_small_components(mesh, cfg.min_component, gap, points)
+        mesh = remove_small_components(mesh, min_component, gap, points)
         figures["floater_faces_removed"] = before - mesh.num_faces
     if cfg.close_holes > 0:
         mesh = close_holes(mesh, cfg.close_holes)
