@@ -185,3 +185,19 @@ def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):
     plane = support_plane(both, both, centers, tol, min_inliers=0.05)
     assert plane is not None and plane[2] > 0.999 and abs(plane[3] + floor) < tol / 2
     assert np.all(centers @ plane[:3] + plane[3] > 0)  # every camera above it
+
+
+def test_a_wall_behind_the_object_is_no_support_plane():
+    """Cameras on one side of a wall (a facade, the back of a dome in a photo collection): the wall bounds the
+    points and has every camera on one side, but its normal is 90 degrees from the cameras' up: refused; the same
+    scene turned so that the wall is a floor is accepted."""
+    ball, table = sphere(0.5, (0.0, 0.0, 0.5)), square(0.0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # +z (the table's normal) -> -y
+    wall = TriangleMesh(merge(ball, table).vertices @ turn.T, merge(ball, table).faces)
+    cams = ring() @ turn.T
+    points = sample_surface(ball, 800, seed=1)[0] @ turn.T
+    cand, normals = candidates(wall, points)
+    found = support_plane(cand, points, cams, 0.02, normals)
+    assert found is not None and found[1] < -0.999  # without up: the wall qualifies
+    assert support_plane(cand, points, cams, 0.02, normals, up=np.array([0.0, 0.0, 1.0])) is None
+    assert support_plane(cand, points, cams, 0.02, normals, up=np.array([0.0, -1.0, 0.2])) is not None

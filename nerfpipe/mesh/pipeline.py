@@ -89,6 +89,9 @@ class MeshConfig:
     """The support plane must hold at least this share of the candidates (surface samples and sparse points):
     a white table that TSDF fusion keeps only in noisy patches near the object holds 2-3% on colmap_mouse
     (the side tests, not this share, keep the object's own faces from qualifying)."""
+    support_max_tilt: float = 45.0
+    """The support plane's normal lies within this many degrees of the cameras' mean up direction (a floor or a
+    table; the Sacre Coeur photos otherwise gave a plane through the back of the dome)."""
     support_tolerance: float = 0.01
     """Faces up to this height above the support plane go with it (fraction of the robust extent diagonal of
     the sparse points on the object); also the RANSAC inlier distance."""
@@ -209,7 +212,7 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         if seen.any():
             mesh = mesh.submesh(seen)
     if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
-        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share)
+        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share, cfg.support_max_tilt)
     min_component = cfg.min_component if cfg.min_component is not None else (0.01 if cfg.method == "tsdf" else 0.05)
     if min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
@@ -246,14 +249,15 @@ def _peel_fog(mesh: TriangleMesh, cfg: MeshConfig, lines, points, slack: float, 
     return mesh
 
 
-def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict, min_share: float) -> TriangleMesh:
+def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict, min_share: float, max_tilt: float) -> TriangleMesh:
     """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane."""
     from nerfpipe.mesh.metrics import sample_surface
 
     centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
     samples, normals = sample_surface(mesh, 20_000)
     candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
-    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=min_share)
+    up = -cameras.world_from_cam[..., :3, 1].double().reshape(-1, 3).mean(0).cpu().numpy()  # OpenCV: +y is down
+    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=min_share, up=up, max_tilt_deg=max_tilt)
     figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
     if plane is None:
         return mesh
