@@ -57,7 +57,8 @@ def mesh_model(
                             cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
                             sight_lines=lines)
     if tsdf_cams is not None:
-        out.figures.update(tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
+        size = int(torch.maximum(tsdf_cams.width, tsdf_cams.height).max())
+        out.figures.update(tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
     return out
 
 
