@@ -80,7 +80,7 @@ class MeshConfig:
     """Object captures: drop the plane the object stands on and whatever lies below it (after the unseen faces
     are gone). The plane bounds the object's sparse points (those in the meshed box) from below, 98% of them
     above it, has 95% of the cameras on one side, and holds at least ``support_min_share`` of the surface samples (lying in it,
-    normals within 25 degrees) and sparse points; of such planes the one holding the most (RANSAC, see
+    normals within ``support_max_angle``) and sparse points; of such planes the one holding the most (RANSAC, see
     :func:`nerfpipe.mesh.clean.support_plane`). Faces within ``support_tolerance`` above it go with it. Needs
     sparse points; an object seen from all around, or standing on a surface the field did not make a surface
     (a white table under fog), keeps everything. mesh.json records ``support_plane`` (world frame, None when
@@ -89,6 +89,10 @@ class MeshConfig:
     """The support plane must hold at least this share of the candidates (surface samples and sparse points):
     a white table that TSDF fusion keeps only in noisy patches near the object holds 2-3% on colmap_mouse
     (the side tests, not this share, keep the object's own faces from qualifying)."""
+    support_max_angle: float = 40.0
+    """A surface sample lies in the support plane when its normal is within this many degrees of the plane's
+    (a TSDF table is noisy: on colmap_mouse after 180 s the table held 2.0% of the candidates at 25 degrees, 3.9%
+    at 40; a slice through fog crosses surfaces at all angles)."""
     support_max_tilt: float = 45.0
     """The support plane's normal lies within this many degrees of the cameras' mean up direction (a floor or a
     table; the Sacre Coeur photos otherwise gave a plane through the back of the dome)."""
@@ -212,7 +216,7 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         if seen.any():
             mesh = mesh.submesh(seen)
     if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
-        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share, cfg.support_max_tilt)
+        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share, cfg.support_max_tilt, cfg.support_max_angle)
     min_component = cfg.min_component if cfg.min_component is not None else (0.01 if cfg.method == "tsdf" else 0.05)
     if min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
@@ -249,7 +253,7 @@ def _peel_fog(mesh: TriangleMesh, cfg: MeshConfig, lines, points, slack: float, 
     return mesh
 
 
-def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict, min_share: float, max_tilt: float) -> TriangleMesh:
+def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict, min_share: float, max_tilt: float, max_angle: float) -> TriangleMesh:
     """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane."""
     from nerfpipe.mesh.metrics import sample_surface
 
@@ -257,7 +261,7 @@ def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: flo
     samples, normals = sample_surface(mesh, 20_000)
     candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
     up = -cameras.world_from_cam[..., :3, 1].double().reshape(-1, 3).mean(0).cpu().numpy()  # OpenCV: +y is down
-    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=min_share, up=up, max_tilt_deg=max_tilt)
+    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=min_share, up=up, max_tilt_deg=max_tilt, max_angle_deg=max_angle)
     figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
     if plane is None:
         return mesh
