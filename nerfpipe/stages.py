@@ -327,7 +327,8 @@ class Pipeline:
         cache.update({k: v for k, v in (("reconstruction", reconstruction), ("images", images)) if v is not None})
         ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=cache)
         ctx.run_dir.mkdir(parents=True, exist_ok=True)
-        sweep_temporaries(ctx.run_dir)
+        if (ctx.run_dir / RUN_RECORD).is_file():  # only a folder nerfpipe ran in holds temporaries of ours
+            sweep_temporaries(ctx.run_dir)
         _check_run_record(ctx, self.names, resume)
         self.validate(ctx)
         t0 = time.monotonic()

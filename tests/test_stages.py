@@ -183,6 +183,12 @@ def test_killed_run_resumes_from_last_finished_stage(tmp_path):
     assert leftovers(tmp_path) == []  # stale temporaries are swept on the next run
 
 
+def test_a_folder_nerfpipe_did_not_make_keeps_its_tmp_files(tmp_path):
+    (tmp_path / ".tmp-notes.txt").write_text("the user's")
+    Pipeline(["a", "b", "c"], registry=toy_registry()).run(None, tmp_path)
+    assert (tmp_path / ".tmp-notes.txt").read_text() == "the user's"
+
+
 def test_not_needed_stage_is_recorded_and_skipped(tmp_path):
     calls = []
     reg = toy_registry(calls)
