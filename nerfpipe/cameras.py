@@ -134,6 +134,11 @@ class Cameras(TensorDataclass):
         return self.world_from_cam[..., :3, 2]
 
     @property
+    def up(self) -> Float[Tensor, "*bs 3"]:
+        """Image-up directions (camera -y) in world coordinates."""
+        return -self.world_from_cam[..., :3, 1]
+
+    @property
     def K(self) -> Float[Tensor, "*bs 3 3"]:
         """Pinhole intrinsic matrices."""
         k = torch.zeros(*self.shape, 3, 3, dtype=self.fx.dtype, device=self.device)

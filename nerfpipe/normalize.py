@@ -45,7 +45,7 @@ def rotation_to_z(up: Float[Tensor, "3"]) -> Float[Tensor, "3 3"]:
 def auto_normalization(cameras: Cameras, center: "Float[Tensor, '3'] | None" = None) -> Similarity:
     """Similarity that centres the scene, turns the mean camera up (-y) to +z, and scales."""
     center = focus_point(cameras) if center is None else center.double()
-    up = -cameras.world_from_cam[..., :3, 1].double().reshape(-1, 3).mean(0)
+    up = cameras.up.double().reshape(-1, 3).mean(0)
     rot = rotation_to_z(up) if up.norm() > 1e-6 else torch.eye(3, dtype=torch.float64)
     dist = (cameras.centers.double().reshape(-1, 3) - center).norm(dim=-1).mean()
     scale = TARGET_CAMERA_DISTANCE / float(dist) if float(dist) > 0 else 1.0

@@ -216,7 +216,7 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         if seen.any():
             mesh = mesh.submesh(seen)
     if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
-        mesh = _remove_support(mesh, cameras, points, cfg.support_tolerance * robust_diagonal(points), figures, cfg.support_min_share, cfg.support_max_tilt, cfg.support_max_angle)
+        mesh = _remove_support(mesh, cameras, points, cfg, figures)
     min_component = cfg.min_component if cfg.min_component is not None else (0.01 if cfg.method == "tsdf" else 0.05)
     if min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
@@ -253,15 +253,17 @@ def _peel_fog(mesh: TriangleMesh, cfg: MeshConfig, lines, points, slack: float, 
     return mesh
 
 
-def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, tolerance: float, figures: dict, min_share: float, max_tilt: float, max_angle: float) -> TriangleMesh:
+def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfig, figures: dict) -> TriangleMesh:
     """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane."""
     from nerfpipe.mesh.metrics import sample_surface
 
+    tolerance = cfg.support_tolerance * robust_diagonal(points)
     centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
     samples, normals = sample_surface(mesh, 20_000)
     candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
-    up = -cameras.world_from_cam[..., :3, 1].double().reshape(-1, 3).mean(0).cpu().numpy()  # OpenCV: +y is down
-    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=min_share, up=up, max_tilt_deg=max_tilt, max_angle_deg=max_angle)
+    up = cameras.up.double().reshape(-1, 3).mean(0).cpu().numpy()
+    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=cfg.support_min_share, up=up,
+                          max_tilt_deg=cfg.support_max_tilt, max_angle_deg=cfg.support_max_angle)
     figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
     if plane is None:
         return mesh

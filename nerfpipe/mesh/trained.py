@@ -149,11 +149,9 @@ def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, se
             shrink = (fit / want) ** 0.5  # a render costs about its pixel count
             base = resize_each(base, torch.full((len(base),), shrink, dtype=torch.float64))
             cams = base[spread(want)]
-        elif fit < len(cams):
-            cams = base[spread(max(min_views, fit))]
-            cache[0] = first  # the same camera: spread() always starts with train[0]
         else:
-            cache[0] = first
+            cams = base[spread(max(min_views, min(fit, len(cams))))]
+            cache[0] = first  # the same camera: spread() always starts with train[0]
     return cams, frame
 
 
