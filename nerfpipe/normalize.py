@@ -72,17 +72,42 @@ def bounds_from_cameras(cameras: Cameras, center: "Float[Tensor, '3'] | None" = 
     return near, far, aabb
 
 
-def bounds_from_points(cameras: Cameras, xyz: Float[Tensor, "num_points 3"], lo: float = 0.02, hi: float = 0.98):
-    """Near/far from the depths of sparse points, and a box from their robust extent.
+OBJECT_PAD = 0.25
+"""Margin of the object region around its points' robust extent, as a fraction of that extent per axis. The
+object's texture-less parts have few sparse points: colmap_mouse's plain lilac end lies 0.2 of the points'
+extent beyond their 98% quantile, so a margin of 0.1 cut the mouse off in the renders and the mesh."""
+
+OBJECT_REACH = 0.75
+"""Points farther from the cameras' focus point than this fraction of the median camera distance are
+background (floor, walls, a distant skyline), not the object the cameras were aimed at."""
+
+
+def object_region(
+    cameras: Cameras, xyz: Float[Tensor, "num_points 3"], pad: float = OBJECT_PAD, quantile: float = 0.02, reach: float = OBJECT_REACH
+) -> Float[Tensor, "2 3"]:
+    """The object region ``[min, max]`` (float64): the robust extent (``quantile`` to ``1 - quantile`` per axis,
+    grown by ``pad`` times that extent) of the sparse points within ``reach`` median camera distances of the
+    point the cameras look at. What lies beyond is modelled as background (the ``fast`` model's field
+    behind the box), not as fog in the object's box. All points count when fewer than 20 are that close.
+    """
+    xyz = xyz.double()
+    focus = focus_point(cameras)
+    dist = (cameras.centers.double().reshape(-1, 3) - focus).norm(dim=-1).median()
+    near = (xyz - focus).norm(dim=-1) <= reach * dist
+    pts = xyz[near] if int(near.sum()) >= 20 else xyz
+    lo, hi = torch.quantile(pts, quantile, dim=0), torch.quantile(pts, 1 - quantile, dim=0)
+    margin = pad * (hi - lo)
+    return torch.stack([lo - margin, hi + margin])
+
+
+def bounds_from_points(cameras: Cameras, xyz: Float[Tensor, "num_points 3"]):
+    """Near/far from the depths of sparse points, and the :func:`object_region` of the points as the box.
 
     Returns:
         (near, far, aabb ``[2, 3]``)
     """
     xyz = xyz.double()
-    box_lo = torch.quantile(xyz, lo, dim=0)
-    box_hi = torch.quantile(xyz, hi, dim=0)
-    pad = 0.1 * (box_hi - box_lo)
-    aabb = torch.stack([box_lo - pad, box_hi + pad])
+    aabb = object_region(cameras, xyz)
     cfw = cameras.cam_from_world.double().reshape(-1, 4, 4)
     gen = torch.Generator().manual_seed(0)  # reproducible bounds
     sub = xyz[torch.randperm(len(xyz), generator=gen)[:20000]] if len(xyz) > 20000 else xyz

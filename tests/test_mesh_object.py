@@ -59,13 +59,16 @@ def test_fog_wall_is_dropped_by_the_pipeline():
 
 
 def test_crop_to_points_takes_their_robust_extent_inside_the_box():
+    from test_mesh_clean import ring_cameras
+
+    cams = ring_cameras()  # 8 cameras 4 units from the origin, looking at it
     gen = torch.Generator().manual_seed(0)
     xyz = torch.rand(1000, 3, generator=gen) * 0.4 - 0.2  # the object, in [-0.2, 0.2]^3
     xyz = torch.cat([xyz, torch.tensor([[50.0, 0, 0], [0, -30.0, 0], [0.0, 0.0, 0.9]])])  # three outliers
-    box = crop_to_points(BOX, xyz, margin=0.1)
+    box = crop_to_points(BOX, cams, xyz, margin=0.1)
     expected = torch.tensor([[-0.2] * 3, [0.2] * 3]) * 1.2  # extent grown by 10% of 0.4 on each side
     assert torch.allclose(box, expected, atol=0.03)
-    far = crop_to_points(BOX, xyz + 10.0, margin=0.1)  # no overlap: the box is kept
+    far = crop_to_points(BOX, cams, xyz + 10.0, margin=0.1)  # no overlap: the box is kept
     assert torch.equal(far, BOX)
 
 

@@ -174,7 +174,7 @@ def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):
 
     scene = load(scene_path("colmap_mouse"))
     xyz, centers = scene.points.xyz.double().numpy(), scene.cameras.centers.double().reshape(-1, 3).numpy()
-    lo, hi = crop_to_points(scene.aabb, scene.points.xyz, 0.05).double().numpy()
+    lo, hi = crop_to_points(scene.aabb, scene.cameras, scene.points.xyz, 0.05).double().numpy()
     obj = xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)]
     tol = 0.01 * robust_diagonal(obj)
     assert support_plane(obj, obj, centers, tol, min_inliers=0.05) is None

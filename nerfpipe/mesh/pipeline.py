@@ -69,11 +69,13 @@ class MeshConfig:
     level_clamp: float = 3.0
     """With ``level_from=agreement``: a point's distance counts at most this many coarse voxels."""
     crop_to_points: bool = True
-    """Mesh only the robust extent of the input's sparse points (2-98% per axis, grown by ``crop_margin``),
-    intersected with the occupied box; inputs without sparse points keep the occupied box."""
-    crop_margin: float = 0.1
-    """Growth of the sparse points' extent, as a fraction of it (0.05 cut the far end of colmap_mouse off; with
-    0.1 the table it stands on enters the box and is found as the support plane)."""
+    """Mesh only the object region of the input's sparse points (:func:`nerfpipe.normalize.object_region`: their
+    2-98% extent per axis near the cameras' focus, grown by ``crop_margin``), intersected with the occupied box;
+    inputs without sparse points keep the occupied box."""
+    crop_margin: float = 0.25
+    """Growth of the sparse points' extent, as a fraction of it: the object region's own margin (0.05 and 0.1
+    cut colmap_mouse's texture-less end off; the table it stands on enters the box and is found as the
+    support plane)."""
     box_sides: float = 2.0
     """Drop faces within this many voxels of the meshed box's sides (background painted on the box: fog walls); 0: keep."""
     support_plane: bool = True

@@ -47,7 +47,7 @@ def mesh_model(
     views = views or RenderedViews()
     aabb, occupancy_fn = box_and_occupancy(model, scene.aabb)
     if cfg.crop_to_points and scene.points is not None and len(scene.points.xyz) >= MIN_CROP_POINTS:
-        aabb = crop_to_points(aabb, scene.points.xyz, cfg.crop_margin)
+        aabb = crop_to_points(aabb, scene.cameras, scene.points.xyz, cfg.crop_margin)
     train = scene.split_cameras("train")
     frame_fn, tsdf_cams = None, None
     if cfg.method == "tsdf":
@@ -68,15 +68,15 @@ def mesh_model(
     return out
 
 
-def crop_to_points(aabb, xyz, margin: float, quantile: float = 0.02):
-    """``aabb`` intersected with the robust extent of the sparse points (``quantile`` to ``1 - quantile``
-    per axis, grown by ``margin`` times that extent); ``aabb`` itself when they do not overlap."""
+def crop_to_points(aabb, cameras, xyz, margin: float):
+    """``aabb`` intersected with the points' object region (:func:`nerfpipe.normalize.object_region`, grown by
+    ``margin``); ``aabb`` itself when they do not overlap."""
     import torch
 
-    xyz = xyz.double().cpu()
-    lo, hi = torch.quantile(xyz, quantile, dim=0), torch.quantile(xyz, 1 - quantile, dim=0)
-    pad = margin * (hi - lo)
-    box = torch.stack([torch.maximum(aabb[0].double(), lo - pad), torch.minimum(aabb[1].double(), hi + pad)]).float()
+    from nerfpipe.normalize import object_region
+
+    region = object_region(cameras, xyz, pad=margin)
+    box = torch.stack([torch.maximum(aabb[0].double(), region[0]), torch.minimum(aabb[1].double(), region[1])]).float()
     return box if bool((box[1] > box[0]).all()) else aabb
 
 
