@@ -2,7 +2,8 @@
 
 Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``, or the model
 files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
-Images are looked up as ``<root>/images/<image name>``.
+Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
+``images/`` (:func:`nerfpipe.paths.resolve_inside`), which may itself be a link to the photos.
 
 Only registered images become cameras, sorted by image name; every 8th of them is ``val``
 (:func:`nerfpipe.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
@@ -23,7 +24,9 @@ import torch
 from nerfpipe.cameras import Cameras, invert_rigid
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
+from nerfpipe.image_file import image_header
 from nerfpipe.normalize import auto_normalization, bounds_from_points
+from nerfpipe.paths import resolve_inside
 from nerfpipe.registry import AdapterSpec
 from nerfpipe.scene import ImageSet, Points3D, SceneData, holdout_split
 
@@ -97,21 +100,10 @@ def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
     return mapped, model
 
 
-def _image_size(path: Path) -> "tuple[int, int]":
-    """(width, height) from the file header only."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except Exception as exc:  # PIL raises several types for unreadable files
-        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", path) from exc
-
-
 def _check_image(path: Path, cam) -> None:
     if not path.is_file():
         raise NerfpipeError("image file is missing (registered in the COLMAP model)", path)
-    w, h = _image_size(path)
+    h, w, _ = image_header(path)
     if (w, h) != (cam.width, cam.height):
         raise NerfpipeError(
             f"image is {w}x{h} but its COLMAP camera {cam.camera_id} is {cam.width}x{cam.height}", path
@@ -174,7 +166,7 @@ def read(path: Path) -> SceneData:
     if not images:
         raise NerfpipeError("COLMAP model has no registered images", images_file)
     cams, models = _cameras(rec, images, cameras_file, images_file)
-    paths = [root / "images" / im.name for im in images]
+    paths = [resolve_inside(root / "images", im.name, images_file) for im in images]
     for p, im in zip(paths, images):
         _check_image(p, rec.camera(im.camera_id))
     return _assemble(root, rec, images, cams, models, paths)

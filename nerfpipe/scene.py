@@ -14,6 +14,7 @@ import torch
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
+from nerfpipe.image_file import read_image_uint8  # noqa: F401 (the one image reader; re-exported)
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
 SPLITS = ("train", "val", "test")
@@ -147,33 +148,6 @@ class ImageSet:
         if self.array is not None:
             return self.array[i if self._rows is None else self._rows[i]]
         return read_image_uint8(self.paths[i])
-
-
-def read_image_uint8(path: Path) -> np.ndarray:
-    """Read an image file as uint8 ``[H, W, 3|4]``; 16-bit is scaled, grey is expanded."""
-    import imageio.v3 as iio
-
-    path = Path(path)
-    if not path.is_file():
-        raise NerfpipeError("image file is missing", path)
-    try:
-        img = np.asarray(iio.imread(path))
-    except Exception as exc:  # imageio raises many types for corrupt files
-        first_line = (str(exc).strip().splitlines() or [""])[0]  # imageio's messages span many lines
-        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {first_line})", path) from exc
-    if img.dtype == np.uint16:
-        img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise NerfpipeError(f"unsupported image dtype {img.dtype}", path)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4):
-        raise NerfpipeError(f"unsupported image shape {img.shape}", path)
-    if img.shape[-1] == 1:
-        img = np.repeat(img, 3, axis=-1)
-    elif img.shape[-1] == 2:  # grey + alpha
-        img = np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
-    return img
 
 
 @dataclass

@@ -1,0 +1,63 @@
+"""Paths named by files, and the folders nerfpipe writes to: checked before anything is read or written.
+
+Datasets and run folders are passed around, so a name inside one (a ``file_path`` in
+``transforms.json``, a COLMAP image name, an image name handed to the load stage, a figure a
+report embeds) must not reach outside it. :func:`resolve_inside` is the one check: the name is
+resolved with ``os.path.realpath`` (``..``, absolute paths and symlinks alike), and the result
+must lie in the resolved root. A symlink *to* the root is fine (the root is resolved too); a
+symlink inside it that leads elsewhere is not.
+
+:func:`check_output_folder` refuses an ``--out`` that cannot become a folder (it, or a folder
+above it, is a file) before any work starts, instead of a ``NotADirectoryError`` at the end.
+"""
+
+import os
+from pathlib import Path
+
+from nerfpipe.errors import NerfpipeError
+
+
+def resolve_inside(root: "str | Path", name: "str | Path", listed_in: "str | Path | None" = None) -> Path:
+    """``root / name``, refusing a name that leads outside ``root`` once resolved.
+
+    The returned path is ``root / name`` as written (normalised), so file names stay the ones
+    the dataset uses; only the check follows symlinks.
+
+    Args:
+        root: the folder the name is relative to (a dataset, an image folder, a run folder).
+        name: the name as found in a file or a folder listing.
+        listed_in: the file that holds the name, named in the error (default: ``root``).
+
+    Raises:
+        NerfpipeError: ``"<listed_in>: '<name>' leads outside <root> ..."``.
+
+    Example:
+        >>> resolve_inside("/data/set", "images/a.png").as_posix()
+        '/data/set/images/a.png'
+    """
+    root = Path(os.path.normpath(Path(root).absolute()))
+    full = Path(os.path.normpath(root / name))
+    real_root, real = Path(os.path.realpath(root)), Path(os.path.realpath(full))
+    if not real.is_relative_to(real_root):
+        how = f"a symlink to {real}" if full.is_relative_to(root) else "'..' or an absolute path"
+        raise NerfpipeError(f"'{name}' points outside the folder {root} ({how}); files must lie inside it", listed_in or root)
+    return full
+
+
+def check_output_folder(out: "str | Path", flag: str = "--out") -> Path:
+    """Fail now, naming ``flag``, when ``out`` cannot be (or become) a writable folder.
+
+    Raises:
+        NerfpipeError: ``out`` or one of the folders above it is a file, or the nearest
+            existing folder is not writable.
+    """
+    out = Path(out)
+    for folder in (out, *out.absolute().parents):
+        if folder.exists():
+            if not folder.is_dir():
+                what = "is a file" if folder == out else f"lies under {folder}, which is a file"
+                raise NerfpipeError(f"{flag} {what}, not a folder", out)
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise NerfpipeError(f"{flag}: no permission to write in {folder}", out)
+            return out
+    return out
