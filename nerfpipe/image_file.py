@@ -36,8 +36,11 @@ def _first_line(exc: BaseException) -> str:
 
 
 @contextlib.contextmanager
-def open_image(path: "str | Path", decode: bool = True) -> Iterator["object"]:
+def open_image(path: "str | Path", decode: bool = True, draft: "tuple[int, int] | None" = None) -> Iterator["object"]:
     """A Pillow image of ``path``, its pixels decoded (``decode``) or only its header read.
+
+    ``draft`` (width, height): let a JPEG decode at a reduced scale no smaller than this (much
+    faster for photos that are downscaled anyway).
 
     Raises:
         NerfpipeError: missing, empty, not an image, truncated or corrupt.
@@ -54,6 +57,8 @@ def open_image(path: "str | Path", decode: bool = True) -> Iterator["object"]:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 im = stack.enter_context(Image.open(path))
+                if draft is not None:
+                    im.draft("RGB", draft)
                 if decode:
                     im.load()
         except UnidentifiedImageError as exc:
