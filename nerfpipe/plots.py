@@ -8,8 +8,12 @@ from nerfpipe.errors import require
 from nerfpipe.atomic import atomic_write
 
 
+PLOT_DEPENDENCIES = (("matplotlib", "plot"),)
+"""What the figures need beyond the core (checked before training by :func:`nerfpipe.evaluation.dependencies`)."""
+
+
 def _pyplot():
-    mpl = require("matplotlib", "plot")
+    mpl = require(*PLOT_DEPENDENCIES[0])
     mpl.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -189,6 +189,22 @@ class SceneData:
             self.splits.setdefault(name, np.zeros(0, dtype=np.int64))
 
 
+def check_images(scene: SceneData, indices=None) -> None:
+    """Decode the images of ``indices`` (default: all) once and check each against its camera's size.
+
+    Adapters read only the file headers; this finds a truncated or corrupt image, or an array of the
+    wrong size, before any work starts (the load stage, the trainer's validation images), as one
+    :class:`NerfpipeError` naming the file.
+    """
+    cams = scene.cameras
+    for i in range(len(cams)) if indices is None else (int(i) for i in indices):
+        if not scene.images.has(i):
+            continue
+        h, w = scene.images.load(i).shape[:2]
+        if (w, h) != (int(cams.width[i]), int(cams.height[i])):
+            raise NerfpipeError(f"image is {w}x{h} but its camera is {int(cams.width[i])}x{int(cams.height[i])}", scene.images.name(i))
+
+
 def holdout_split(n: int, every: int = 8) -> "dict[str, np.ndarray]":
     """The shared train/val rule for captures without their own splits (COLMAP, single-file transforms).
 

@@ -34,6 +34,7 @@ import torch
 
 from nerfpipe.cameras import Cameras, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.paths import check_output_folder
 from nerfpipe.rays import camera_rays
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
@@ -486,6 +487,7 @@ def _write_layout(tmp: Path, cameras: Cameras, views: "list[View]", points, cfg:
 
 
 def _check_target(out: Path, overwrite: bool) -> None:
+    check_output_folder(out)
     if not out.exists() or (out.is_dir() and not any(out.iterdir())):
         return
     if not out.is_dir():

@@ -18,11 +18,13 @@ from pathlib import Path
 import torch
 
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.devices import check_device
+from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
 from nerfpipe.models.base import Callback, Model, SceneInfo
+from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
 from nerfpipe.runs import CONFIG, to_dict, write_json
-from nerfpipe.scene import SceneData
+from nerfpipe.scene import SceneData, check_images
 
 
 @dataclass
@@ -85,10 +87,16 @@ class TrainerConfig:
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
             ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", self.video_frames >= 0, "0 or more"),
+            ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
+            ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
+            ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
+            ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
+            ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
+            ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
+            ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
         )
-        for name, ok, what in checks:
-            if not ok:
-                raise NerfpipeError(f"--{name.replace('_', '-')} must be {what}, got {getattr(self, name)}")
+        refuse_unless((name, ok, what, getattr(self, name)) for name, ok, what in checks)
+        check_device(self.device)
 
 
 def scene_info(scene: SceneData) -> SceneInfo:
@@ -126,7 +134,12 @@ class Trainer:
     """Trains one model on one scene into a run folder."""
 
     def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path) -> None:
-        self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
+        """Everything that can be refused is refused here, before training and before ``out_dir`` is made:
+        the output folder, the optional modules the outputs need, and every image the run will read."""
+        from nerfpipe import evaluation
+
+        self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
+        require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
         if cfg.num_threads:
@@ -140,6 +153,9 @@ class Trainer:
             group.setdefault("initial_lr", group["lr"])
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=cfg.track_rays)
+        split = evaluation.eval_split(scene)
+        if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
+            check_images(scene, scene.splits[split])
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
@@ -200,9 +216,7 @@ class Trainer:
         """Seconds on the configured clock (see :attr:`TrainerConfig.clock`)."""
         if self.cfg.clock == "cpu":
             return time.process_time() / max(torch.get_num_threads(), 1)
-        if self.cfg.clock != "wall":
-            raise NerfpipeError(f"unknown clock {self.cfg.clock!r} (wall or cpu)")
-        return time.perf_counter()
+        return time.perf_counter()  # "wall": TrainerConfig refuses any other value
 
     def apply_lr(self) -> None:
         """Set every group's rate from the model's schedule (on the optimiser's own groups: loading a

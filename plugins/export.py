@@ -156,4 +156,5 @@ STAGE = StageSpec(
     run=run,
     requires=("scene",),
     produces=(TRANSFORMS, TRAJECTORY),
+    dependencies=(("open3d", "mesh"),),
 )

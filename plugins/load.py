@@ -21,7 +21,7 @@ import numpy as np
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.image_file import image_uint8
 from nerfpipe.paths import resolve_inside
-from nerfpipe.scene import SceneData
+from nerfpipe.scene import SceneData, check_images
 from nerfpipe.stages import StageContext, StageSpec, atomic_path, write_json
 
 SCENE_JSON = "scene.json"
@@ -102,6 +102,7 @@ def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
     path, fmt = input_path(ctx)
     fmt = config.format or fmt
     scene = data_adapters.load(path, fmt)
+    check_images(scene)  # adapters read headers only: a truncated image stops the run here, before any work
     write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt))
     ctx.log.info("loaded %d cameras (%s) from %s", len(scene.cameras), scene.format, path)
     return {"scene": scene, SCENE_JSON: ctx.path(SCENE_JSON)}

@@ -17,7 +17,7 @@ import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from nerfpipe import checkpoint
+from nerfpipe import checkpoint, evaluation
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
 
@@ -112,4 +112,5 @@ STAGE = StageSpec(
     produces=(CHECKPOINT, METRICS),
     provides=("model", "metrics"),
     restore=restore,
+    dependencies=evaluation.dependencies(TrainStageConfig().trainer),
 )
