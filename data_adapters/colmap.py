@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data_adapters._common import check_focal
 from nerfpipe.cameras import Cameras, invert_rigid
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
@@ -97,6 +98,11 @@ def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
             f"(supported: {', '.join(SUPPORTED_MODELS)}); undistort the images with 'colmap image_undistorter'",
             cameras_file,
         )
+    fx, fy, cx, cy, _, dist = mapped
+    check_focal(fx, cameras_file, f"camera {cam.camera_id} focal fx")
+    check_focal(fy, cameras_file, f"camera {cam.camera_id} focal fy")
+    if not np.isfinite([cx, cy, *dist]).all() or cam.width <= 0 or cam.height <= 0:
+        raise NerfpipeError(f"camera {cam.camera_id} has a non-finite principal point or distortion, or no pixels", cameras_file)
     return mapped, model
 
 

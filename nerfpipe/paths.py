@@ -29,7 +29,8 @@ def resolve_inside(root: "str | Path", name: "str | Path", listed_in: "str | Pat
         listed_in: the file that holds the name, named in the error (default: ``root``).
 
     Raises:
-        NerfpipeError: ``"<listed_in>: '<name>' leads outside <root> ..."``.
+        NerfpipeError: ``"<listed_in>: '<name>' points outside the folder <root> ..."`` for ``..`` or an
+            absolute path, ``"<root>/<name>: a symlink to <target>, outside the folder <root> ..."`` for a link.
 
     Example:
         >>> resolve_inside("/data/set", "images/a.png").as_posix()
@@ -38,10 +39,12 @@ def resolve_inside(root: "str | Path", name: "str | Path", listed_in: "str | Pat
     root = Path(os.path.normpath(Path(root).absolute()))
     full = Path(os.path.normpath(root / name))
     real_root, real = Path(os.path.realpath(root)), Path(os.path.realpath(full))
-    if not real.is_relative_to(real_root):
-        how = f"a symlink to {real}" if full.is_relative_to(root) else "'..' or an absolute path"
-        raise NerfpipeError(f"'{name}' points outside the folder {root} ({how}); files must lie inside it", listed_in or root)
-    return full
+    if real.is_relative_to(real_root):
+        return full
+    if full.is_relative_to(root):  # the name stays inside, a symlink on the way leads out: name the link
+        where = f" (listed in {listed_in})" if listed_in is not None else ""
+        raise NerfpipeError(f"a symlink to {real}, outside the folder {root}{where}; files must lie inside it", full)
+    raise NerfpipeError(f"'{name}' points outside the folder {root} ('..' or an absolute path); files must lie inside it", listed_in or root)
 
 
 def check_output_folder(out: "str | Path", flag: str = "--out") -> Path:
