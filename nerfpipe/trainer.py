@@ -19,7 +19,7 @@ import torch
 
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.devices import check_device
-from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
+from nerfpipe.errors import refuse_unless, require_all
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
