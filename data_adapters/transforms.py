@@ -152,14 +152,22 @@ def _focals(intr: dict, w: int, h: int, file: Path) -> "tuple[float, float]":
     if "fl_x" in intr:
         fx = check_focal(intr["fl_x"], file, "fl_x")
     elif "camera_angle_x" in intr:
-        fx = check_focal(0.5 * w / math.tan(0.5 * float(intr["camera_angle_x"])), file, "focal from camera_angle_x")
+        fx = check_focal(0.5 * w / math.tan(0.5 * _angle(intr, "camera_angle_x", file)), file, "focal from camera_angle_x")
     else:
         raise NerfpipeError("no focal length: give fl_x or camera_angle_x", file)
     if "fl_y" in intr:
         return fx, check_focal(intr["fl_y"], file, "fl_y")
     if "camera_angle_y" in intr:
-        return fx, check_focal(0.5 * h / math.tan(0.5 * float(intr["camera_angle_y"])), file, "focal from camera_angle_y")
+        return fx, check_focal(0.5 * h / math.tan(0.5 * _angle(intr, "camera_angle_y", file)), file, "focal from camera_angle_y")
     return fx, fx
+
+
+def _angle(intr: dict, key: str, file: Path) -> float:
+    """A field of view in radians, strictly between 0 and pi (0 would divide by zero, pi or more is no lens)."""
+    angle = float(intr[key])
+    if not 0 < angle < math.pi:
+        raise NerfpipeError(f"{key} must be a field of view in radians between 0 and pi, got {angle}", file)
+    return angle
 
 
 def _distortion(intr: dict, file: Path) -> "tuple[str, Distortion, list[float]]":

@@ -70,8 +70,9 @@ def read_config(run_dir: Path) -> dict:
     return cfg
 
 
-def _load_state(model, state: dict, ckpt_path: Path, name: str) -> None:
-    """``model.load_state_dict(state)``, a checkpoint that does not fit being one line naming it."""
+def load_model_state(model, state: dict, ckpt_path: Path, name: str) -> None:
+    """``model.load_state_dict(state)``, a checkpoint that does not fit (another model, tensors missing
+    or of other shapes) being one line naming it (used by :func:`load_run` and the trainer's resume)."""
     missing = sorted(set(model.state_dict()) - set(state)) if isinstance(state, dict) else ["(all)"]
     if missing:
         raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG}: missing tensors {', '.join(missing[:3])}", ckpt_path)
@@ -108,5 +109,5 @@ def load_run(run_dir: Path, device: str = "cpu"):
         raise NerfpipeError(exc.problem, config_file) from exc
     scene = load(Path(cfg["data"]))
     model = model_cfg.setup(scene_info(scene)).to(device)
-    _load_state(model, state, ckpt_path, cfg["model"])
+    load_model_state(model, state, ckpt_path, cfg["model"])
     return scene, model.eval(), cfg

@@ -6,6 +6,7 @@ Glossary:
                   (:class:`Similarity` ``world_from_input``); exports map back with its inverse
 """
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -187,6 +188,20 @@ class SceneData:
     def __post_init__(self) -> None:
         for name in SPLITS:
             self.splits.setdefault(name, np.zeros(0, dtype=np.int64))
+        self._check_geometry()
+
+    def _check_geometry(self) -> None:
+        """Every adapter builds a SceneData, so a degenerate capture is refused here, once, naming the source:
+        cameras all at one place (or NaN intrinsics) give empty or NaN bounds, which training would divide by."""
+        cams = self.cameras
+        intrinsics = torch.stack([cams.fx, cams.fy, cams.cx, cams.cy]).double()
+        if not (torch.isfinite(intrinsics).all() and torch.isfinite(cams.dist_params.double()).all()):
+            raise NerfpipeError("camera intrinsics or distortion contain NaN or Inf", self.source)
+        box = self.aabb.double()
+        if not (math.isfinite(self.near) and math.isfinite(self.far) and 0 <= self.near < self.far):
+            raise NerfpipeError(f"degenerate scene: near {self.near:.4g}, far {self.far:.4g} (are all cameras at one position?)", self.source)
+        if not (torch.isfinite(box).all() and bool((box[1] > box[0]).all())):
+            raise NerfpipeError("degenerate scene: its box has no volume or is not finite (are all cameras at one position?)", self.source)
 
 
 def check_images(scene: SceneData, indices=None) -> None:

@@ -19,11 +19,11 @@ import torch
 
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.devices import check_device
-from nerfpipe.errors import refuse_unless, require_all
+from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
-from nerfpipe.runs import CONFIG, to_dict, write_json
+from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.scene import SceneData, check_images
 
 
@@ -173,6 +173,15 @@ class Trainer:
             "history": self.history,
         }
 
+    def resume_from(self, path: Path) -> None:
+        """Continue from the checkpoint at ``path``; one that does not fit this model and training is one line."""
+        state = load_checkpoint(path)
+        load_model_state(self.model, state["model"], path, self.model_name)
+        try:
+            self.load_state(state)
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise NerfpipeError(f"checkpoint does not fit this training ({' '.join(str(exc).split())[:300]})", path) from exc
+
     def load_state(self, state: dict) -> None:
         self.model.load_state_dict(state["model"])
         initial = [group["initial_lr"] for group in self.optimizer.param_groups]
@@ -237,7 +246,7 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         checkpoint = find_checkpoint(self.out) if self.cfg.resume else None
         if checkpoint is not None:
-            self.load_state(load_checkpoint(checkpoint))
+            self.resume_from(checkpoint)
         else:
             torch.set_rng_state(self.torch_rng)
         self.write_config()

@@ -483,6 +483,11 @@ CASES: "dict[str, Case]" = {
     "info/nan-focal": blender_case(lambda d: d.update(camera_angle_x=float("nan")), lambda r: str(r / "transforms_train.json")),
     "info/negative-focal": capture_case(lambda d: d.update(fl_x=-3.0), "fl_x must be a positive"),
     "info/text-focal": capture_case(lambda d: d.update(fl_x="wide"), lambda r: str(r / "transforms.json")),
+    "info/field-of-view-zero": blender_case(lambda d: d.update(camera_angle_x=0.0), "camera_angle_x must be a field of view"),
+    "info/nan-principal-point": capture_case(lambda d: d.update(fl_x=20.0, cx=float("nan")), "NaN"),
+    "info/nan-distortion": capture_case(lambda d: d.update(fl_x=20.0, k1=float("nan")), "NaN"),
+    "train/cameras-at-one-position": capture_case(
+        lambda d: [f.update(transform_matrix=d["frames"][0]["transform_matrix"]) for f in d["frames"]], "degenerate scene", command="train"),
     "info/unsupported-camera-model": capture_case(lambda d: d.update(camera_model="EQUIRECTANGULAR"), "EQUIRECTANGULAR"),
     "info/image-missing": image_case(lambda p, t: (p.unlink(), p)[1]),
     "info/image-is-text": image_case(lambda p, t: (p.write_text("not a png"), p)[1]),
@@ -567,6 +572,7 @@ CASES: "dict[str, Case]" = {
     "render/frames-zero": run_case(lambda r, t: "--frames", flags=("--frames", "0")),
     "render/device-unknown": run_case(lambda r, t: "--device", flags=("--device", "bogus")),
     "render/missing-mp4-writer": Case(run_case(lambda r, t: "imageio_ffmpeg").make, missing_module="imageio_ffmpeg"),
+    "train/resume-checkpoint-of-another-model": Case(lambda b, t: _resume_other_model(b, t)),
     "mesh/not-a-run-folder": run_case(_not_a_run, command="mesh", output="mesh"),
     "mesh/checkpoint-of-another-model": run_case(_checkpoint_of_another_model, command="mesh", output="mesh"),
     "mesh/resolution-zero": run_case(lambda r, t: "--resolution", command="mesh", flags=("--resolution", "0"), output="mesh"),
@@ -624,6 +630,13 @@ def _as_float_tiff(path: Path) -> Path:
     rgb = np.asarray(Image.open(path).convert("L"), np.float32) * 300.0 / 255.0
     Image.fromarray(rgb).save(path, format="TIFF")
     return path
+
+
+def _resume_other_model(base: Path, tmp: Path):
+    """``train --resume --model vanilla`` into a run folder whose checkpoint is the fast model's (the folder exists)."""
+    run = _copy(base, "run", tmp)
+    argv = ["train", str(base / "blender"), "--model", "vanilla", "--resume", "--iters", "1", "--out", str(run)]
+    return argv, str(run / "checkpoint.safetensors"), None
 
 
 def _legacy_checkpoint(run: Path) -> Path:
