@@ -77,12 +77,52 @@ def detect(path: Path) -> int:
     return 20 if find_model_dir(path) is not None else 0
 
 
+def _records_fit(file: Path) -> "str | None":
+    """Walk ``images.bin`` or ``points3D.bin`` by their counts; what is wrong, or None when every record fits.
+
+    pycolmap trusts the counts in a binary model: a truncated or garbled ``points3D.bin`` can make it
+    allocate gigabytes and run for minutes before failing. Walking the record sizes first costs a few
+    milliseconds per thousand records. Layouts (little-endian): ``images.bin``: count u64, then per image
+    id u32, qvec 4 f64, tvec 3 f64, camera id u32, name NUL-terminated, n u64, n x (x, y f64, point id i64);
+    ``points3D.bin``: count u64, then per point id u64, xyz 3 f64, rgb 3 u8, error f64, n u64, n x 8 bytes.
+    """
+    data = file.read_bytes()
+    end, pos = len(data), 8
+    if end < 8:
+        return "file is shorter than its record count"
+    fixed, item = (64, 24) if file.stem == "images" else (43, 8)
+    for i in range(int.from_bytes(data[:8], "little")):
+        if file.stem == "images":
+            name_end = data.find(b"\0", pos + 64)
+            if name_end < 0:
+                return f"image record {i} has no name end (truncated?)"
+            pos = name_end + 1
+        else:
+            pos += fixed
+        if pos + 8 > end:
+            return f"record {i} runs past the end of the file (truncated?)"
+        n = int.from_bytes(data[pos : pos + 8], "little")
+        pos += 8 + n * item
+        if pos > end:
+            return f"record {i} claims {n} entries, past the end of the file (truncated or corrupt)"
+    return None
+
+
+def _check_binary(model_dir: Path) -> None:
+    for stem in ("images", "points3D"):
+        file = model_dir / f"{stem}.bin"
+        problem = _records_fit(file) if file.is_file() else None
+        if problem is not None:
+            raise NerfpipeError(f"cannot read COLMAP model: {problem}", file)
+
+
 def _open(model_dir: Path):
     # Load the system zlib before pycolmap's bundled one: with pycolmap first, PNG writing in
     # the same process aborts (free(): invalid pointer in deflateEnd, pycolmap 4.2.1 + Pillow).
     import zlib  # noqa: F401
 
     pycolmap = require("pycolmap", "colmap")
+    _check_binary(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises RuntimeError/ValueError for unreadable models

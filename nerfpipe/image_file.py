@@ -49,7 +49,7 @@ def open_image(path: "str | Path", decode: bool = True, draft: "tuple[int, int] 
 
     path = Path(path)
     if not path.is_file():
-        raise NerfpipeError("image file is missing", path)
+        raise NerfpipeError("is a folder, not an image file" if path.is_dir() else "image file is missing", path)
     if path.stat().st_size == 0:
         raise NerfpipeError("image file is empty", path)
     with contextlib.ExitStack() as stack:

@@ -240,6 +240,8 @@ class Pipeline:
         configs: "dict[str, object] | None" = None,
         registry: "dict[str, StageSpec] | None" = None,
     ) -> None:
+        if not chain:
+            raise NerfpipeError("a pipeline needs at least one stage (e.g. --stages load,check)")
         self.registry = dict(stages() if registry is None else registry)
         self.specs: list[StageSpec] = [self._spec(s) for s in chain]
         self.registry.update({s.name: s for s in self.specs})

@@ -203,7 +203,10 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     work = ctx.path(WORK_DIR)
     shutil.rmtree(work, ignore_errors=True)
     info = prepare_images(photos, work / "images", config.max_image_size)
-    rec, seconds = reconstruct(work / "images", work, config, info, ctx.time_left())
+    try:
+        rec, seconds = reconstruct(work / "images", work, config, info, ctx.time_left())
+    except NerfpipeError as exc:  # name the user's photos, not the scratch folder
+        raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
     record = summary(rec, photos, seconds)

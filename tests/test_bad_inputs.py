@@ -511,6 +511,8 @@ CASES: "dict[str, Case]" = {
     "info/colmap-image-size-mismatch": colmap_case(lambda r, t: _small_png(_colmap_first_image(r))),
     "info/colmap-nan-focal": colmap_case(lambda r, t: _colmap_camera(r, [float("nan"), 58.0, 32.0, 24.0])),
     "info/colmap-zero-focal": colmap_case(lambda r, t: _colmap_camera(r, [0.0, 58.0, 32.0, 24.0])),
+    "info/colmap-points-bin-truncated": colmap_case(lambda r, t: _truncate(r / "sparse" / "0" / "points3D.bin", 0.5)),
+    "info/colmap-points-bin-huge-count": colmap_case(lambda r, t: _huge_count(r / "sparse" / "0" / "points3D.bin")),
     "check/colmap-unsupported-model": colmap_case(lambda r, t: _colmap_model(r, "FULL_OPENCV"), command="check"),
     # npz (CS180)
     "info/npz-garbage": npz_case(_write_bytes(b"this is not a zip archive" * 8)),
@@ -535,6 +537,7 @@ CASES: "dict[str, Case]" = {
     "train/lr-nan": param_case("train", ["--lr", "nan"], "--lr"),
     "train/eval-scale-0": param_case("train", ["--eval-scale", "0"], "--eval-scale"),
     "train/background-unknown": param_case("train", ["--background", "purple"], "--background"),
+    "train/num-samples-zero": param_case("train", ["--model", "vanilla", "--num-samples", "0"], "--num-samples"),
     "train/model-unknown": param_case("train", ["--model", "nosuch"], "nosuch"),
     "train/missing-mp4-writer": param_case("train", ["--iters", "1"], "imageio_ffmpeg", missing_module="imageio_ffmpeg"),
     "train/missing-matplotlib": param_case("train", ["--iters", "1"], "matplotlib", missing_module="matplotlib"),
@@ -547,6 +550,8 @@ CASES: "dict[str, Case]" = {
     "run/pipeline-toml-invalid": pipeline_case(_toml("stages = [load"), ["--pipeline", "{tmp}/pipe.toml"]),
     "run/pipeline-toml-wrong-type": pipeline_case(_toml('stages = ["load", "render"]\n[render]\nframes = "many"\n'), ["--pipeline", "{tmp}/pipe.toml"]),
     "run/pipeline-toml-zero-frames": pipeline_case(_toml('stages = ["load", "render"]\n[render]\nframes = 0\n'), ["--pipeline", "{tmp}/pipe.toml"], "--frames"),
+    "run/empty-stage-list": param_case("run", ["--stages", ","], "at least one stage", out_name="run-out"),
+    "run/one-photo-registers-nothing": Case(lambda b, t: _one_photo(b, t)),
     "run/photo-is-text": photo_case(lambda p, t: (p.write_text("not a photo"), p)[1]),
     "run/photo-truncated": photo_case(lambda p, t: _truncate(p, 0.5)),
     "run/photo-symlink-out": photo_case(_symlink_out),
@@ -596,11 +601,14 @@ CASES: "dict[str, Case]" = {
     # eval-mesh
     "eval-mesh/text-mesh": mesh_file_case(lambda p: p.write_text("ply\nnonsense\n")),
     "eval-mesh/empty-mesh": mesh_file_case(lambda p: p.write_bytes(b"")),
+    "eval-mesh/nan-vertices": mesh_file_case(lambda p: p.write_text(NAN_PLY)),
+    "fit2d/a-folder": Case(lambda b, t: (["fit2d", str(b / "blender"), "--out", str(t / "out")], str(b / "blender"), t / "out")),
     "eval-mesh/samples-zero": Case(lambda b, t: (["eval-mesh", str(b / "blender" / "gt_mesh.ply"), str(b / "blender" / "gt_mesh.ply"), "--samples", "0"], "--samples", None)),
     # synth
     "synth/size-garbage": synth_case(["--size", "bigxsmall"], "--size"),
     "synth/size-tiny": synth_case(["--size", "2x2"], "2x2"),
     "synth/one-view": synth_case(["--views", "1"], "at least 2 views"),
+    "synth/views-huge": synth_case(["--views", "100000"], "at most"),
     "synth/out-under-a-file": Case(lambda b, t: (lambda out: (["synth", str(out)], str(out), out))(_file_out(t))),
     "synth/out-not-empty": synth_case([], "{out}", prepare=_full_folder),
 }
@@ -637,6 +645,37 @@ def _resume_other_model(base: Path, tmp: Path):
     run = _copy(base, "run", tmp)
     argv = ["train", str(base / "blender"), "--model", "vanilla", "--resume", "--iters", "1", "--out", str(run)]
     return argv, str(run / "checkpoint.safetensors"), None
+
+
+NAN_PLY = """ply
+format ascii 1.0
+element vertex 3
+property float x
+property float y
+property float z
+element face 1
+property list uchar int vertex_indices
+end_header
+nan 0 0
+1 0 0
+0 1 0
+3 0 1 2
+"""
+
+
+def _huge_count(file: Path) -> Path:
+    data = bytearray(file.read_bytes())
+    data[8 + 43 : 8 + 51] = (2**40).to_bytes(8, "little")  # the first point's track length
+    file.write_bytes(bytes(data))
+    return file
+
+
+def _one_photo(base: Path, tmp: Path):
+    """One photo: SfM registers nothing; the error names the photos, and the new run folder is removed."""
+    photos = tmp / "photos"
+    photos.mkdir()
+    shutil.copyfile(sorted((base / "colmap" / "images").iterdir())[0], photos / "a.png")
+    return ["run", str(photos), "--out", str(tmp / "run-out")], str(photos), tmp / "run-out"
 
 
 def _legacy_checkpoint(run: Path) -> Path:

@@ -56,13 +56,14 @@ def train(
     from data_adapters import load
 
     from nerfpipe import evaluation
-    from nerfpipe.errors import NerfpipeError, require_all
+    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.models.registry import get_model
     from nerfpipe.paths import check_output_folder
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     spec = get_model(model)
     model_cfg = spec.config()
+    refuse_unless([("num_samples", num_samples is None or num_samples >= 1, "at least 1", num_samples)])
     if num_samples is not None:
         if not any(f.name == "num_samples" for f in dataclasses.fields(model_cfg)):
             raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
