@@ -88,6 +88,8 @@ def read_image_uint8(path: "str | Path") -> np.ndarray:
         elif im.mode == "PA":
             im = im.convert("RGBA")
         img = np.asarray(im)
+    if im.mode == "I" and img.size and 0 <= img.min() and img.max() <= 65535:  # 16-bit grey that Pillow widened
+        img = img.astype(np.uint16)
     return image_uint8(img, path)
 
 

@@ -27,6 +27,10 @@ from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.scene import SceneData, check_images
 
 
+MAX_RAYS_PER_STEP = 1 << 22
+"""More rays per step than this (4 M) would not fit in memory with any model's samples: a typo, refused."""
+
+
 @dataclass
 class TrainerConfig:
     """How to train a model."""
@@ -82,11 +86,11 @@ class TrainerConfig:
     def __post_init__(self) -> None:
         """Impossible values are one clear error before anything runs or is written (not a run that never ends)."""
         checks = (
-            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step >= 1, "at least 1"),
+            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"between 1 and {MAX_RAYS_PER_STEP}"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
-            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", self.video_frames >= 0, "0 or more"),
+            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
             ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
             ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
             ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),

@@ -48,7 +48,7 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         refuse_unless((
-            ("frames", self.frames >= 1, "at least 1", self.frames), ("scale", 0 < self.scale <= 16, "a positive factor (at most 16)", self.scale),
+            ("frames", 1 <= self.frames <= 10_000, "between 1 and 10000", self.frames), ("scale", 0 < self.scale <= 16, "a positive factor (at most 16)", self.scale),
             ("chunk", self.chunk >= 1, "at least 1", self.chunk), ("fps", 0 < self.fps <= 240, "in (0, 240]", self.fps),
             ("max_size", self.max_size >= 1, "at least 1", self.max_size), ("min_frames", self.min_frames >= 1, "at least 1", self.min_frames),
             ("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share),

@@ -44,7 +44,7 @@ def render(
         raise NerfpipeError(f"unknown --path '{path}' (test or orbit)")
     if background is not None and background not in BACKGROUNDS:
         raise NerfpipeError(f"unknown --background '{background}' ({' or '.join(BACKGROUNDS)})")
-    refuse_unless([("frames", frames >= 1, "at least 1", frames), ("chunk", chunk >= 1, "at least 1", chunk)])
+    refuse_unless([("frames", 1 <= frames <= 10_000, "between 1 and 10000", frames), ("chunk", chunk >= 1, "at least 1", chunk)])
     wh = None if size is None else _parse_size(size)
     require_all(SEQUENCE_DEPENDENCIES)
     scene, model, cfg = load_run(Path(run_dir), check_device(device))
