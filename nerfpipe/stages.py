@@ -178,6 +178,10 @@ def _apply(default: object, values: dict, what: str, where: "str | Path | None")
         return dataclasses.replace(default, **values)
     except (TypeError, ValueError) as exc:  # a value of the wrong type meets the config's own checks
         raise NerfpipeError(f"{what} has an option of the wrong type ({exc})", where) from exc
+    except NerfpipeError as exc:  # the config's own check of a value: name the file it came from
+        if exc.path is not None or where is None:
+            raise
+        raise NerfpipeError(exc.problem, where) from exc
 
 
 # ---------------------------------------------------------------- the pipeline
