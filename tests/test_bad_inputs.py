@@ -610,6 +610,9 @@ CASES: "dict[str, Case]" = {
     "fit2d/a-folder": Case(lambda b, t: (["fit2d", str(b / "blender"), "--out", str(t / "out")], str(b / "blender"), t / "out")),
     "eval-mesh/samples-zero": Case(lambda b, t: (["eval-mesh", str(b / "blender" / "gt_mesh.ply"), str(b / "blender" / "gt_mesh.ply"), "--samples", "0"], "--samples", None)),
     # synth
+    "demo/device-unknown": param_case("demo", ["--device", "bogus"], "--device", data=None),
+    "demo/out-under-a-file": out_under_file_case("demo", data=None),
+    "demo/train-seconds-negative": param_case("demo", ["--train-seconds", "-1"], "--train-seconds", data=None),
     "synth/size-garbage": synth_case(["--size", "bigxsmall"], "--size"),
     "synth/size-tiny": synth_case(["--size", "2x2"], "2x2"),
     "synth/one-view": synth_case(["--views", "1"], "at least 2 views"),
