@@ -759,3 +759,20 @@ def test_missing_optional_dependency_is_found_before_training(base, tmp_path, mo
     assert not started and not out.exists()
     assert main(["run", str(base / "blender"), "--stages", "load,train,render", "--out", str(out)]) == 2
     assert not started and not out.exists()
+
+
+@pytest.mark.parametrize("name, array, message", [
+    ("../../escaped.png", np.zeros((48, 64, 3), np.uint8), "points outside the folder"),
+    ("frame.png", np.full((48, 64, 3), 300.0, np.float32), "float values outside"),
+    ("frame.png", np.zeros((48, 64, 3), np.int64), "dtype int64"),
+])  # fmt: skip
+def test_in_memory_images_handed_to_the_load_stage_are_checked(tmp_path, name, array, message):
+    """The Python API's other input: image names stay inside the run folder, arrays must be images."""
+    from colmap_synth import synthesize
+
+    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.stages import Pipeline
+
+    with pytest.raises(NerfpipeError, match=message):
+        Pipeline(["load"]).run(None, tmp_path / "run", reconstruction=synthesize(frames=3, points=20), images={name: array})
+    assert not (tmp_path / "escaped.png").exists() and not (tmp_path / "run").exists()
