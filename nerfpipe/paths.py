@@ -36,6 +36,9 @@ def resolve_inside(root: "str | Path", name: "str | Path", listed_in: "str | Pat
         >>> resolve_inside("/data/set", "images/a.png").as_posix()
         '/data/set/images/a.png'
     """
+    text = str(name)
+    if "\0" in text or len(os.fsencode(text)) > 4096 or any(len(os.fsencode(p)) > 255 for p in Path(text).parts):
+        raise NerfpipeError(f"{text[:80]!r} is not a usable file name (a NUL character, or too long)", listed_in or root)
     root = Path(os.path.normpath(Path(root).absolute()))
     full = Path(os.path.normpath(root / name))
     real_root, real = Path(os.path.realpath(root)), Path(os.path.realpath(full))

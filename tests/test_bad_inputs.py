@@ -475,6 +475,8 @@ CASES: "dict[str, Case]" = {
     "info/file-path-dotdot": blender_case(_frame("file_path", "../../outside"), lambda r: str(r / "transforms_train.json")),
     "info/file-path-absolute": blender_case(_frame("file_path", "/etc/passwd"), lambda r: str(r / "transforms_train.json")),
     "info/file-path-symlink-out": image_case(_symlink_out),
+    "info/file-path-nul": blender_case(_frame("file_path", "./train/view\u0000_001"), lambda r: str(r / "transforms_train.json")),
+    "info/file-path-too-long": blender_case(_frame("file_path", "./train/" + "v" * 300), lambda r: str(r / "transforms_train.json")),
     "check/file-path-symlink-out": image_case(_symlink_out, command="check"),
     "info/ply-path-escape": capture_case(lambda d: d.update(ply_file_path="../points.ply"), lambda r: str(r / "transforms.json")),
     "info/nan-pose": blender_case(lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")), "transform_matrix[1] contains NaN"),
