@@ -126,11 +126,11 @@ def _frames(doc: dict, json_file: Path, skip_missing: bool) -> "list[_Frame]":
             continue
         own = {k: fr[k] for k in INTRINSIC_KEYS if k in fr}
         frames.append(_Frame(image, fr["transform_matrix"], {**glob, **own}))
+    if not frames:  # an error, and no warning besides it: the user reads one line
+        raise NerfpipeError(f"none of the {len(doc['frames'])} frames has an existing image file", json_file)
     if missing:
         warnings.warn(f"{json_file}: {len(missing)} of {len(doc['frames'])} frames have no image file and are "
                       f"skipped (first: {', '.join(missing[:3])})", UserWarning, stacklevel=3)  # fmt: skip
-    if not frames:
-        raise NerfpipeError(f"none of the {len(doc['frames'])} frames has an existing image file", json_file)
     return frames
 
 

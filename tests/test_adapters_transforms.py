@@ -164,7 +164,7 @@ def test_ngp_frames_without_image_are_skipped(tmp_path, scene_path):
     assert not any(Path(scene.images.name(i)).stem in NGP_DELETED for i in range(50))
     for image in (tmp_path / "images").iterdir():
         image.unlink()
-    with pytest.raises(NerfpipeError, match="none of the 67 frames"), pytest.warns(UserWarning):
+    with pytest.raises(NerfpipeError, match="none of the 67 frames"):
         data_adapters.load(tmp_path)
 
 

@@ -492,6 +492,8 @@ CASES: "dict[str, Case]" = {
         lambda d: [f.update(transform_matrix=d["frames"][0]["transform_matrix"]) for f in d["frames"]], "degenerate scene", command="train"),
     "info/unsupported-camera-model": capture_case(lambda d: d.update(camera_model="EQUIRECTANGULAR"), "EQUIRECTANGULAR"),
     "info/image-missing": image_case(lambda p, t: (p.unlink(), p)[1]),
+    "info/capture-every-image-missing": capture_case(lambda d: [f.update(file_path=f"gone/{i}.png") for i, f in enumerate(d["frames"])],
+                                                     lambda r: str(r / "transforms.json")),
     "info/image-is-text": image_case(lambda p, t: (p.write_text("not a png"), p)[1]),
     "info/image-empty": image_case(lambda p, t: (p.write_bytes(b""), p)[1]),
     "check/image-size-mismatch": capture_case(lambda d: d.update(w=99, fl_x=20.0), lambda r: str(r / "train" / "view_001.png"), command="check"),
