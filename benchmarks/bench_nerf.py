@@ -52,7 +52,10 @@ def resolve_preset(name: str):
         if key not in {f.name for f in dataclasses.fields(model_cfg)}:
             raise NerfpipeError(f"bench preset {name!r}: {model_name} has no option {key!r}")
         kind = type(getattr(model_cfg, key))
-        model_cfg = dataclasses.replace(model_cfg, **{key: kind(value) if kind in (int, float, str) else float(value)})
+        try:
+            model_cfg = dataclasses.replace(model_cfg, **{key: kind(value) if kind in (int, float, str) else float(value)})
+        except ValueError as exc:
+            raise NerfpipeError(f"bench preset {name!r}: {key}={value!r} is not a {kind.__name__}") from exc
     return model_name, model_cfg, over
 
 
@@ -76,6 +79,20 @@ class BenchConfig:
     device: str = "cpu"
     rays_per_step: "int | None" = None
     """Override every preset's rays per step."""
+
+    def __post_init__(self) -> None:
+        from nerfpipe.devices import check_device
+        from nerfpipe.errors import refuse_unless
+
+        refuse_unless((
+            ("budgets", len(self.budgets) > 0 and all(b > 0 for b in self.budgets), "positive seconds", self.budgets),
+            ("presets", len(self.presets) > 0, "at least one preset", self.presets),
+            ("eval_views", self.eval_views >= 0, "0 or more", self.eval_views),
+            ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)", self.eval_scale),
+            ("threads", self.threads >= 1, "at least 1", self.threads), ("clock", self.clock in ("wall", "cpu"), "wall or cpu", self.clock),
+            ("rays_per_step", self.rays_per_step is None or self.rays_per_step >= 1, "at least 1", self.rays_per_step),
+        ))  # fmt: skip
+        check_device(self.device)
 
 
 @dataclass
@@ -200,8 +217,15 @@ def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
     import torch
     from data_adapters import load
 
+    from nerfpipe import evaluation
+    from nerfpipe.errors import require_all
+    from nerfpipe.paths import check_output_folder
+    from nerfpipe.trainer import TrainerConfig
+
     for name in cfg.presets:
         resolve_preset(name)  # every name is checked before anything trains
+    check_output_folder(out)
+    require_all(evaluation.dependencies(TrainerConfig(video_frames=0)))  # scores and the table's figure
     torch.set_num_threads(cfg.threads)
     scene = load(path)
     out.mkdir(parents=True, exist_ok=True)

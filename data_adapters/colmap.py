@@ -2,7 +2,8 @@
 
 Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``, or the model
 files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
-Images are looked up as ``<root>/images/<image name>``.
+Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
+``images/`` (:func:`nerfpipe.paths.resolve_inside`), which may itself be a link to the photos.
 
 Only registered images become cameras, sorted by image name; every 8th of them is ``val``
 (:func:`nerfpipe.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
@@ -20,10 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data_adapters._common import check_focal
 from nerfpipe.cameras import Cameras, invert_rigid
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
+from nerfpipe.image_file import image_header
 from nerfpipe.normalize import auto_normalization, bounds_from_points
+from nerfpipe.paths import resolve_inside
 from nerfpipe.registry import AdapterSpec
 from nerfpipe.scene import ImageSet, Points3D, SceneData, holdout_split
 
@@ -73,12 +77,52 @@ def detect(path: Path) -> int:
     return 20 if find_model_dir(path) is not None else 0
 
 
+def _records_fit(file: Path) -> "str | None":
+    """Walk ``images.bin`` or ``points3D.bin`` by their counts; what is wrong, or None when every record fits.
+
+    pycolmap trusts the counts in a binary model: a truncated or garbled ``points3D.bin`` can make it
+    allocate gigabytes and run for minutes before failing. Walking the record sizes first costs a few
+    milliseconds per thousand records. Layouts (little-endian): ``images.bin``: count u64, then per image
+    id u32, qvec 4 f64, tvec 3 f64, camera id u32, name NUL-terminated, n u64, n x (x, y f64, point id i64);
+    ``points3D.bin``: count u64, then per point id u64, xyz 3 f64, rgb 3 u8, error f64, n u64, n x 8 bytes.
+    """
+    data = file.read_bytes()
+    end, pos = len(data), 8
+    if end < 8:
+        return "file is shorter than its record count"
+    fixed, item = (64, 24) if file.stem == "images" else (43, 8)
+    for i in range(int.from_bytes(data[:8], "little")):
+        if file.stem == "images":
+            name_end = data.find(b"\0", pos + 64)
+            if name_end < 0:
+                return f"image record {i} has no name end (truncated?)"
+            pos = name_end + 1
+        else:
+            pos += fixed
+        if pos + 8 > end:
+            return f"record {i} runs past the end of the file (truncated?)"
+        n = int.from_bytes(data[pos : pos + 8], "little")
+        pos += 8 + n * item
+        if pos > end:
+            return f"record {i} claims {n} entries, past the end of the file (truncated or corrupt)"
+    return None
+
+
+def _check_binary(model_dir: Path) -> None:
+    for stem in ("images", "points3D"):
+        file = model_dir / f"{stem}.bin"
+        problem = _records_fit(file) if file.is_file() else None
+        if problem is not None:
+            raise NerfpipeError(f"cannot read COLMAP model: {problem}", file)
+
+
 def _open(model_dir: Path):
     # Load the system zlib before pycolmap's bundled one: with pycolmap first, PNG writing in
     # the same process aborts (free(): invalid pointer in deflateEnd, pycolmap 4.2.1 + Pillow).
     import zlib  # noqa: F401
 
     pycolmap = require("pycolmap", "colmap")
+    _check_binary(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises RuntimeError/ValueError for unreadable models
@@ -94,24 +138,18 @@ def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
             f"(supported: {', '.join(SUPPORTED_MODELS)}); undistort the images with 'colmap image_undistorter'",
             cameras_file,
         )
+    fx, fy, cx, cy, _, dist = mapped
+    check_focal(fx, cameras_file, f"camera {cam.camera_id} focal fx")
+    check_focal(fy, cameras_file, f"camera {cam.camera_id} focal fy")
+    if not np.isfinite([cx, cy, *dist]).all() or cam.width <= 0 or cam.height <= 0:
+        raise NerfpipeError(f"camera {cam.camera_id} has a non-finite principal point or distortion, or no pixels", cameras_file)
     return mapped, model
-
-
-def _image_size(path: Path) -> "tuple[int, int]":
-    """(width, height) from the file header only."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except Exception as exc:  # PIL raises several types for unreadable files
-        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", path) from exc
 
 
 def _check_image(path: Path, cam) -> None:
     if not path.is_file():
         raise NerfpipeError("image file is missing (registered in the COLMAP model)", path)
-    w, h = _image_size(path)
+    h, w, _ = image_header(path)
     if (w, h) != (cam.width, cam.height):
         raise NerfpipeError(
             f"image is {w}x{h} but its COLMAP camera {cam.camera_id} is {cam.width}x{cam.height}", path
@@ -174,7 +212,7 @@ def read(path: Path) -> SceneData:
     if not images:
         raise NerfpipeError("COLMAP model has no registered images", images_file)
     cams, models = _cameras(rec, images, cameras_file, images_file)
-    paths = [root / "images" / im.name for im in images]
+    paths = [resolve_inside(root / "images", im.name, images_file) for im in images]
     for p, im in zip(paths, images):
         _check_image(p, rec.camera(im.camera_id))
     return _assemble(root, rec, images, cams, models, paths)

@@ -20,6 +20,7 @@ import torch
 from data_adapters._common import check_focal, check_world_from_cam, synthetic_bounds
 from nerfpipe.cameras import Cameras, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError
+from nerfpipe.image_file import images_uint8
 from nerfpipe.registry import AdapterSpec
 from nerfpipe.scene import ImageSet, SceneData, Similarity
 
@@ -70,19 +71,6 @@ def _require(arrays: dict, keys: "tuple[str, ...]", layout: str, file: Path) -> 
         )
 
 
-def _images_uint8(img: np.ndarray, file: Path, what: str) -> np.ndarray:
-    """``[N, H, W, 3|4]`` uint8, from uint8 or from floats in [0, 1]."""
-    if img.ndim != 4 or img.shape[-1] not in (3, 4) or min(img.shape[:3]) == 0:
-        raise NerfpipeError(f"{what} must have shape [N, H, W, 3|4], not {list(img.shape)}", file)
-    if img.dtype == np.uint8:
-        return img
-    if not np.issubdtype(img.dtype, np.floating):
-        raise NerfpipeError(f"{what} must be uint8 or float in [0, 1], not {img.dtype}", file)
-    if not np.isfinite(img).all() or img.min() < -1e-3 or img.max() > 1 + 1e-3:
-        raise NerfpipeError(f"{what} has float values outside [0, 1] (or NaN)", file)
-    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
-
-
 def _world_from_cam(arrays: dict, key: str, count: "int | None", file: Path) -> np.ndarray:
     m = check_world_from_cam(arrays[key], file, key)
     if count is not None and len(m) != count:
@@ -93,8 +81,8 @@ def _world_from_cam(arrays: dict, key: str, count: "int | None", file: Path) -> 
 def _read_cs180(arrays: dict, file: Path):
     """(images with has_image mask, OpenGL world_from_cam [N,4,4], split sizes)."""
     _require(arrays, CS180_KEYS, "CS180", file)
-    train = _images_uint8(arrays["images_train"], file, "images_train")
-    val = _images_uint8(arrays["images_val"], file, "images_val")
+    train = images_uint8(arrays["images_train"], file, "images_train")
+    val = images_uint8(arrays["images_val"], file, "images_val")
     if train.shape[1:] != val.shape[1:]:
         raise NerfpipeError(f"images_train {list(train.shape[1:])} and images_val {list(val.shape[1:])} differ in size", file)
     poses = [
@@ -109,7 +97,7 @@ def _read_cs180(arrays: dict, file: Path):
 
 def _read_tiny(arrays: dict, file: Path):
     _require(arrays, TINY_KEYS, "tiny-NeRF", file)
-    images = _images_uint8(arrays["images"], file, "images")
+    images = images_uint8(arrays["images"], file, "images")
     poses = _world_from_cam(arrays, "poses", len(images), file)
     n_train = min(TINY_TRAIN, len(images))
     return ImageSet(array=images), poses, [n_train, len(images) - n_train, 0]

@@ -21,7 +21,6 @@ Image sizes are checked against the cameras from the file headers only (nothing 
 
 import json
 import math
-import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +32,9 @@ from data_adapters._common import check_focal, check_world_from_cam, synthetic_b
 from nerfpipe.cameras import Cameras, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
+from nerfpipe.image_file import image_header
 from nerfpipe.normalize import auto_normalization, bounds_from_cameras, bounds_from_points
+from nerfpipe.paths import resolve_inside
 from nerfpipe.registry import AdapterSpec
 from nerfpipe.scene import SPLITS, ImageSet, Points3D, SceneData, Similarity, holdout_split
 
@@ -99,24 +100,13 @@ def _load_json(file: Path) -> dict:
     return doc
 
 
-def resolve_inside(root: Path, file_path: str, json_file: Path) -> Path:
-    """``root / file_path``, refusing paths that leave ``root`` (``..``, absolute paths elsewhere).
-
-    The check is lexical, so symlinked images inside the folder are fine.
-    """
-    root = Path(os.path.normpath(root.absolute()))
-    full = Path(os.path.normpath(root / str(file_path).replace("\\", "/")))
-    if not full.is_relative_to(root):
-        raise NerfpipeError(f"file_path '{file_path}' points outside the dataset folder {root}", json_file)
-    return full
-
-
 def _image_path(root: Path, frame: dict, json_file: Path) -> Path:
     if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
         raise NerfpipeError("a frame has no 'file_path' string", json_file)
-    full = resolve_inside(root, frame["file_path"], json_file)
-    if not full.suffix and not full.is_file():
-        full = full.with_name(full.name + ".png")  # Blender writes paths without the extension
+    name = frame["file_path"].replace("\\", "/")  # paths written on Windows
+    full = resolve_inside(root, name, json_file)
+    if not full.suffix and not full.is_file():  # Blender writes paths without the extension
+        full = resolve_inside(root, name + ".png", json_file)
     return full
 
 
@@ -136,26 +126,15 @@ def _frames(doc: dict, json_file: Path, skip_missing: bool) -> "list[_Frame]":
             continue
         own = {k: fr[k] for k in INTRINSIC_KEYS if k in fr}
         frames.append(_Frame(image, fr["transform_matrix"], {**glob, **own}))
+    if not frames:  # an error, and no warning besides it: the user reads one line
+        raise NerfpipeError(f"none of the {len(doc['frames'])} frames has an existing image file", json_file)
     if missing:
         warnings.warn(f"{json_file}: {len(missing)} of {len(doc['frames'])} frames have no image file and are "
                       f"skipped (first: {', '.join(missing[:3])})", UserWarning, stacklevel=3)  # fmt: skip
-    if not frames:
-        raise NerfpipeError(f"none of the {len(doc['frames'])} frames has an existing image file", json_file)
     return frames
 
 
 # ---------------------------------------------------------------- intrinsics
-
-
-def _image_shape(image: Path) -> "tuple[int, int, int]":
-    """``(H, W, C)`` from the file header, without decoding the pixels."""
-    import imageio.v3 as iio
-
-    try:
-        shape = tuple(iio.improps(image).shape)
-    except Exception as exc:  # imageio raises many types for corrupt files
-        raise NerfpipeError(f"cannot read image header ({type(exc).__name__}: {exc})", image) from exc
-    return (*shape[:2], shape[2] if len(shape) == 3 else 1)
 
 
 def _size(intr: dict, shape: "tuple[int, int, int]", image: Path) -> "tuple[int, int]":
@@ -173,14 +152,22 @@ def _focals(intr: dict, w: int, h: int, file: Path) -> "tuple[float, float]":
     if "fl_x" in intr:
         fx = check_focal(intr["fl_x"], file, "fl_x")
     elif "camera_angle_x" in intr:
-        fx = check_focal(0.5 * w / math.tan(0.5 * float(intr["camera_angle_x"])), file, "focal from camera_angle_x")
+        fx = check_focal(0.5 * w / math.tan(0.5 * _angle(intr, "camera_angle_x", file)), file, "focal from camera_angle_x")
     else:
         raise NerfpipeError("no focal length: give fl_x or camera_angle_x", file)
     if "fl_y" in intr:
         return fx, check_focal(intr["fl_y"], file, "fl_y")
     if "camera_angle_y" in intr:
-        return fx, check_focal(0.5 * h / math.tan(0.5 * float(intr["camera_angle_y"])), file, "focal from camera_angle_y")
+        return fx, check_focal(0.5 * h / math.tan(0.5 * _angle(intr, "camera_angle_y", file)), file, "focal from camera_angle_y")
     return fx, fx
+
+
+def _angle(intr: dict, key: str, file: Path) -> float:
+    """A field of view in radians, strictly between 0 and pi (0 would divide by zero, pi or more is no lens)."""
+    angle = float(intr[key])
+    if not 0 < angle < math.pi:
+        raise NerfpipeError(f"{key} must be a field of view in radians between 0 and pi, got {angle}", file)
+    return angle
 
 
 def _distortion(intr: dict, file: Path) -> "tuple[str, Distortion, list[float]]":
@@ -205,7 +192,7 @@ def _cameras(frames: "list[_Frame]", file: Path) -> "tuple[Cameras, list[str], b
     cols: dict[str, list] = {k: [] for k in ("fx", "fy", "cx", "cy", "width", "height", "distortion", "dist_params")}
     models, channels = [], []
     for f in frames:
-        shape = _image_shape(f.image)
+        shape = image_header(f.image)
         try:
             w, h = _size(f.intrinsics, shape, f.image)
             fx, fy = _focals(f.intrinsics, w, h, file)

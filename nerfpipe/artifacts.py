@@ -5,7 +5,10 @@ from pathlib import Path
 
 from nerfpipe.colormap import colorize_depth, depth_range, mapping_text
 from nerfpipe.render import RenderedView, to_uint8
-from nerfpipe.video import write_gif, write_video
+from nerfpipe.video import VIDEO_DEPENDENCIES, write_gif, write_video
+
+SEQUENCE_DEPENDENCIES = (*VIDEO_DEPENDENCIES, ("matplotlib", "plot"))
+"""What :func:`write_sequence` needs: the MP4 encoder, and matplotlib's colour map for the depth GIF."""
 
 
 def write_sequence(views: "list[RenderedView]", out_dir: Path, name: str = "orbit", depth: bool = True, fps: float = 15.0) -> dict:

@@ -41,3 +41,34 @@ def require(module: str, extra: str):
         return importlib.import_module(module)
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise MissingDependencyError(module, extra) from exc
+
+
+Dependencies = "tuple[tuple[str, str], ...]"
+"""``((module, extra), ...)``: the optional modules an output needs, as :func:`require` takes them."""
+
+
+def require_all(dependencies: "Dependencies") -> None:
+    """Import every optional dependency now, or fail with the first missing one.
+
+    Called before training or any other long work, so a missing writer (the MP4 encoder, the
+    plotting library) is reported before there is a result to lose, not when it is written.
+
+    Example:
+        >>> require_all((("numpy", "core"), ("json", "core")))
+    """
+    for module, extra in dependencies:
+        require(module, extra)
+
+
+def refuse_unless(checks) -> None:
+    """Each check ``(name, ok, what, value)``: when not ``ok``, ``"--<name> must be <what>, got <value>"``.
+
+    The one shape of a parameter error, used by every config's ``__post_init__`` and command, so an
+    impossible value (a negative budget, zero frames, NaN) stops before anything runs or is written.
+
+    Example:
+        >>> refuse_unless([("iters", 10 >= 0, "0 or more", 10)])
+    """
+    for name, ok, what, value in checks:
+        if not ok:
+            raise NerfpipeError(f"--{name.replace('_', '-')} must be {what}, got {value}")

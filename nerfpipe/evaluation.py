@@ -18,6 +18,19 @@ from nerfpipe.render import capped_size, render_cameras, resize_cameras, to_uint
 from nerfpipe.runs import write_json
 
 
+def dependencies(cfg) -> "tuple[tuple[str, str], ...]":
+    """The optional modules validation and :func:`finish` will need under the trainer config ``cfg``
+    (scores always; figures and videos when written), checked before training starts."""
+    from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
+    from nerfpipe.plots import PLOT_DEPENDENCIES
+
+    deps = [("kornia", "kornia")]
+    if cfg.write_outputs:
+        deps += PLOT_DEPENDENCIES
+        deps += SEQUENCE_DEPENDENCIES if cfg.video_frames else ()
+    return tuple(deps)
+
+
 def eval_split(scene) -> str:
     for split in ("val", "test", "train"):
         idx = scene.splits.get(split)

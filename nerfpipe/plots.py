@@ -8,8 +8,12 @@ from nerfpipe.errors import require
 from nerfpipe.atomic import atomic_write
 
 
+PLOT_DEPENDENCIES = (("matplotlib", "plot"),)
+"""What the figures need beyond the core (checked before training by :func:`nerfpipe.evaluation.dependencies`)."""
+
+
 def _pyplot():
-    mpl = require("matplotlib", "plot")
+    mpl = require(*PLOT_DEPENDENCIES[0])
     mpl.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -45,13 +49,13 @@ def plot_progress(snapshots: "list[Path]", path: Path, max_panels: int = 8) -> N
     """One validation view at several iterations (evenly chosen snapshots, the last one included)."""
     if not snapshots:
         return
-    import imageio.v3 as iio
+    from nerfpipe.image_file import read_image_uint8
 
     plt = _pyplot()
     idx = torch.linspace(0, len(snapshots) - 1, min(max_panels, len(snapshots))).round().long().unique().tolist()
     fig, axes = plt.subplots(1, len(idx), figsize=(2.6 * len(idx), 2.9), squeeze=False)
     for ax, i in zip(axes[0], idx):
-        ax.imshow(iio.imread(snapshots[i]))
+        ax.imshow(read_image_uint8(snapshots[i]))
         ax.set_title(f"iter {int(snapshots[i].stem.split('_')[1])}", fontsize=9)
         ax.axis("off")
     _save(fig, path)

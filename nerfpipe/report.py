@@ -22,6 +22,9 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.paths import resolve_inside
+
 REPORT_FILE = "report.html"
 
 # Where each artifact may be, first match wins (globs relative to the run folder).
@@ -91,10 +94,19 @@ class Page:
         """First existing file among the candidate globs (relative to ``root``, default the run folder)."""
         root = self.run_dir if root is None else root
         for pattern in candidates:
-            hits = sorted(p for p in root.glob(pattern) if p.is_file())
+            hits = sorted(p for p in root.glob(pattern) if p.is_file() and self._inside(root, p))
             if hits:
                 return hits[0]
         return None
+
+    def _inside(self, root: Path, path: Path) -> bool:
+        """Whether ``path`` resolves inside ``root``: a link out of the run folder is never embedded in the page."""
+        try:
+            resolve_inside(root, path.relative_to(root))
+        except NerfpipeError as exc:
+            self.missing.append(f"{path.relative_to(root)} (not embedded: {exc.problem})")
+            return False
+        return True
 
     def json(self, candidates: "tuple[str, ...]", what: str, root: "Path | None" = None) -> "dict | None":
         """The first candidate's JSON object; None (recorded as missing) when absent or unreadable."""

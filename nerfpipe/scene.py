@@ -6,6 +6,7 @@ Glossary:
                   (:class:`Similarity` ``world_from_input``); exports map back with its inverse
 """
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import torch
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError
+from nerfpipe.image_file import read_image_uint8  # noqa: F401 (the one image reader; re-exported)
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
 SPLITS = ("train", "val", "test")
@@ -149,33 +151,6 @@ class ImageSet:
         return read_image_uint8(self.paths[i])
 
 
-def read_image_uint8(path: Path) -> np.ndarray:
-    """Read an image file as uint8 ``[H, W, 3|4]``; 16-bit is scaled, grey is expanded."""
-    import imageio.v3 as iio
-
-    path = Path(path)
-    if not path.is_file():
-        raise NerfpipeError("image file is missing", path)
-    try:
-        img = np.asarray(iio.imread(path))
-    except Exception as exc:  # imageio raises many types for corrupt files
-        first_line = (str(exc).strip().splitlines() or [""])[0]  # imageio's messages span many lines
-        raise NerfpipeError(f"cannot read image ({type(exc).__name__}: {first_line})", path) from exc
-    if img.dtype == np.uint16:
-        img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise NerfpipeError(f"unsupported image dtype {img.dtype}", path)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4):
-        raise NerfpipeError(f"unsupported image shape {img.shape}", path)
-    if img.shape[-1] == 1:
-        img = np.repeat(img, 3, axis=-1)
-    elif img.shape[-1] == 2:  # grey + alpha
-        img = np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
-    return img
-
-
 @dataclass
 class SceneData:
     """What every data adapter returns, in nerfpipe's single camera convention."""
@@ -213,6 +188,36 @@ class SceneData:
     def __post_init__(self) -> None:
         for name in SPLITS:
             self.splits.setdefault(name, np.zeros(0, dtype=np.int64))
+        self._check_geometry()
+
+    def _check_geometry(self) -> None:
+        """Every adapter builds a SceneData, so a degenerate capture is refused here, once, naming the source:
+        cameras all at one place (or NaN intrinsics) give empty or NaN bounds, which training would divide by."""
+        cams = self.cameras
+        intrinsics = torch.stack([cams.fx, cams.fy, cams.cx, cams.cy]).double()
+        if not (torch.isfinite(intrinsics).all() and torch.isfinite(cams.dist_params.double()).all()):
+            raise NerfpipeError("camera intrinsics or distortion contain NaN or Inf", self.source)
+        box = self.aabb.double()
+        if not (math.isfinite(self.near) and math.isfinite(self.far) and 0 <= self.near < self.far):
+            raise NerfpipeError(f"degenerate scene: near {self.near:.4g}, far {self.far:.4g} (are all cameras at one position?)", self.source)
+        if not (torch.isfinite(box).all() and bool((box[1] > box[0]).all())):
+            raise NerfpipeError("degenerate scene: its box has no volume or is not finite (are all cameras at one position?)", self.source)
+
+
+def check_images(scene: SceneData, indices=None) -> None:
+    """Decode the images of ``indices`` (default: all) once and check each against its camera's size.
+
+    Adapters read only the file headers; this finds a truncated or corrupt image, or an array of the
+    wrong size, before any work starts (the load stage, the trainer's validation images), as one
+    :class:`NerfpipeError` naming the file.
+    """
+    cams = scene.cameras
+    for i in range(len(cams)) if indices is None else (int(i) for i in indices):
+        if not scene.images.has(i):
+            continue
+        h, w = scene.images.load(i).shape[:2]
+        if (w, h) != (int(cams.width[i]), int(cams.height[i])):
+            raise NerfpipeError(f"image is {w}x{h} but its camera is {int(cams.width[i])}x{int(cams.height[i])}", scene.images.name(i))
 
 
 def holdout_split(n: int, every: int = 8) -> "dict[str, np.ndarray]":

@@ -15,7 +15,9 @@ Run folder layout::
 
 Resume rule: :meth:`Pipeline.run` skips the leading stages whose marker exists with the same
 config hash, is newer than the markers of the stages before it, and whose artifacts are all on
-disk; from the first stage that has to run, every later stage runs too. A stage interrupted
+disk; from the first stage that has to run, every later stage runs too. Before the run folder is
+made, the chain is checked (device, run folder, every stage's optional modules, required artifacts);
+a user error (:class:`NerfpipeError`) before any stage finished removes the folder this run made. A stage interrupted
 half-way leaves neither a marker nor a half-written artifact (markers are written after the
 artifacts, both by ``os.replace``); the temporaries of a killed run are swept by the next one.
 
@@ -28,6 +30,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import shutil
 import time
 import tomllib
 from collections.abc import Callable
@@ -36,7 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from nerfpipe.atomic import TMP_PREFIX, _json_default, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.devices import check_device
+from nerfpipe.errors import NerfpipeError, require_all
+from nerfpipe.paths import check_output_folder
 from nerfpipe.registry import STAGE_GROUP, discover
 
 MARKER_DIR = "stages"
@@ -71,6 +76,9 @@ class StageSpec:
     """Whether the stage is needed for this input (e.g. ``sfm`` only for bare photos); None: always."""
     restore: "Callable[[Any, StageContext], dict[str, object]] | None" = None
     """Rebuild the ``provides`` artifacts from the files of a finished run (for resume and re-runs)."""
+    dependencies: "tuple[tuple[str, str], ...]" = ()
+    """Optional modules ``(module, extra)`` the stage needs; :meth:`Pipeline.run` imports those of every
+    stage of the chain before running any, so a missing one never costs the earlier stages' work."""
 
 
 @dataclass
@@ -146,6 +154,8 @@ def config_hash(config: object) -> str:
 
 def make_config(spec: StageSpec, values: "dict | None", where: "str | Path | None" = None) -> object:
     """The stage's config with ``values`` (from TOML or a dict) applied; unknown keys are errors."""
+    if values is not None and not isinstance(values, dict):
+        raise NerfpipeError(f"options of stage '{spec.name}' must be a table of name = value, not {type(values).__name__}", where)
     return _apply(spec.config(), values or {}, f"stage '{spec.name}'", where)
 
 
@@ -164,7 +174,14 @@ def _apply(default: object, values: dict, what: str, where: "str | Path | None")
             values[key] = tuple(value)
         elif isinstance(current, Path) and isinstance(value, str):
             values[key] = Path(value)
-    return dataclasses.replace(default, **values)
+    try:
+        return dataclasses.replace(default, **values)
+    except (TypeError, ValueError) as exc:  # a value of the wrong type meets the config's own checks
+        raise NerfpipeError(f"{what} has an option of the wrong type ({exc})", where) from exc
+    except NerfpipeError as exc:  # the config's own check of a value: name the file it came from
+        if exc.path is not None or where is None:
+            raise
+        raise NerfpipeError(exc.problem, where) from exc
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -227,6 +244,8 @@ class Pipeline:
         configs: "dict[str, object] | None" = None,
         registry: "dict[str, StageSpec] | None" = None,
     ) -> None:
+        if not chain:
+            raise NerfpipeError("a pipeline needs at least one stage (e.g. --stages load,check)")
         self.registry = dict(stages() if registry is None else registry)
         self.specs: list[StageSpec] = [self._spec(s) for s in chain]
         self.registry.update({s.name: s for s in self.specs})
@@ -325,14 +344,21 @@ class Pipeline:
             raise NerfpipeError(f"--time-budget must be a positive number of seconds, got {time_budget}")
         cache = dict(cache or {})
         cache.update({k: v for k, v in (("reconstruction", reconstruction), ("images", images)) if v is not None})
-        ctx = self.context(run_dir, source, device=device, time_budget=time_budget, cache=cache)
+        ctx = self.context(check_output_folder(run_dir, "the run folder"), source, device=check_device(device), time_budget=time_budget, cache=cache)
+        require_all(tuple(d for s in self.specs for d in s.dependencies))
+        self.validate(ctx)
+        created = not ctx.run_dir.exists()
         ctx.run_dir.mkdir(parents=True, exist_ok=True)
         if (ctx.run_dir / RUN_RECORD).is_file():  # only a folder nerfpipe ran in holds temporaries of ours
             sweep_temporaries(ctx.run_dir)
-        _check_run_record(ctx, self.names, resume)
-        self.validate(ctx)
         t0 = time.monotonic()
-        records = self._run_chain(ctx, resume, on_stage)
+        try:
+            _check_run_record(ctx, self.names, resume)
+            records = self._run_chain(ctx, resume, on_stage)
+        except NerfpipeError:
+            if created and not any((read_marker(ctx, n) or {}).get("status") == "ran" for n in self.names):
+                shutil.rmtree(ctx.run_dir, ignore_errors=True)  # a refused input, no stage's work: leave no folder behind
+            raise
         names = [a for s in self.specs for a in s.produces + s.provides]
         return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
 
@@ -383,9 +409,10 @@ def marker_path(ctx: StageContext, name: str) -> Path:
 
 def read_marker(ctx: StageContext, name: str) -> "dict | None":
     try:
-        return json.loads(marker_path(ctx, name).read_text())
-    except (OSError, json.JSONDecodeError):
+        done = json.loads(marker_path(ctx, name).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
+    return done if isinstance(done, dict) else None
 
 
 def is_done(ctx: StageContext, spec: StageSpec, config: object, after: float = 0.0) -> "dict | None":

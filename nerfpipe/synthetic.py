@@ -34,6 +34,7 @@ import torch
 
 from nerfpipe.cameras import Cameras, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.paths import check_output_folder
 from nerfpipe.rays import camera_rays
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
@@ -52,6 +53,10 @@ COMPOSITE_SCALE = 1.3
 """Scale of the composite object (fills about 60 % of the default views)."""
 SCENE_FILE = "scene.json"
 MESH_FILE = "gt_mesh.ply"
+MAX_VIEWS = 2000
+"""Most cameras a synthetic scene may have (more is a typo, not a test scene)."""
+MAX_PIXELS = 200_000_000
+"""Most pixels of all views together: every ray is cast at once, about 100 bytes per pixel."""
 SPLIT_PERIOD = 8
 """Views ``i % 8 == 0`` go to the test split and ``i % 8 == 4`` to val (Blender layout)."""
 
@@ -90,10 +95,12 @@ class SynthConfig:
     """Also write ``depth/<name>.npy`` (float32 distance along the ray, 0 on background)."""
 
     def __post_init__(self) -> None:
-        if self.views < 2:
-            raise NerfpipeError(f"need at least 2 views, got {self.views}")
+        if not 2 <= self.views <= MAX_VIEWS:
+            raise NerfpipeError(f"need at least 2 views and at most {MAX_VIEWS}, got {self.views}")
         if self.width < 4 or self.height < 4:
             raise NerfpipeError(f"image size {self.width}x{self.height} is too small (min 4x4)")
+        if self.views * self.width * self.height > MAX_PIXELS:
+            raise NerfpipeError(f"{self.views} views of {self.width}x{self.height} exceed {MAX_PIXELS:,} pixels in all (ray casting holds them in memory)")
         if not -90 < self.min_elevation_deg <= self.max_elevation_deg < 90:
             raise NerfpipeError("elevations must satisfy -90 < min <= max < 90 degrees")
 
@@ -486,6 +493,7 @@ def _write_layout(tmp: Path, cameras: Cameras, views: "list[View]", points, cfg:
 
 
 def _check_target(out: Path, overwrite: bool) -> None:
+    check_output_folder(out)
     if not out.exists() or (out.is_dir() and not any(out.iterdir())):
         return
     if not out.is_dir():

@@ -18,11 +18,17 @@ from pathlib import Path
 import torch
 
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.devices import check_device
+from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
 from nerfpipe.models.base import Callback, Model, SceneInfo
+from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
-from nerfpipe.runs import CONFIG, to_dict, write_json
-from nerfpipe.scene import SceneData
+from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
+from nerfpipe.scene import SceneData, check_images
+
+
+MAX_RAYS_PER_STEP = 1 << 22
+"""More rays per step than this (4 M) would not fit in memory with any model's samples: a typo, refused."""
 
 
 @dataclass
@@ -80,15 +86,21 @@ class TrainerConfig:
     def __post_init__(self) -> None:
         """Impossible values are one clear error before anything runs or is written (not a run that never ends)."""
         checks = (
-            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step >= 1, "at least 1"),
+            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"between 1 and {MAX_RAYS_PER_STEP}"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
-            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", self.video_frames >= 0, "0 or more"),
+            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
+            ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
+            ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
+            ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
+            ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
+            ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
+            ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
+            ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
         )
-        for name, ok, what in checks:
-            if not ok:
-                raise NerfpipeError(f"--{name.replace('_', '-')} must be {what}, got {getattr(self, name)}")
+        refuse_unless((name, ok, what, getattr(self, name)) for name, ok, what in checks)
+        check_device(self.device)
 
 
 def scene_info(scene: SceneData) -> SceneInfo:
@@ -126,7 +138,12 @@ class Trainer:
     """Trains one model on one scene into a run folder."""
 
     def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path) -> None:
-        self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
+        """Everything that can be refused is refused here, before training and before ``out_dir`` is made:
+        the output folder, the optional modules the outputs need, and every image the run will read."""
+        from nerfpipe import evaluation
+
+        self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
+        require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
         if cfg.num_threads:
@@ -140,6 +157,9 @@ class Trainer:
             group.setdefault("initial_lr", group["lr"])
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=cfg.track_rays)
+        split = evaluation.eval_split(scene)
+        if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
+            check_images(scene, scene.splits[split])
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
@@ -156,6 +176,15 @@ class Trainer:
             "sampler_rng": self.generator.get_state(),
             "history": self.history,
         }
+
+    def resume_from(self, path: Path) -> None:
+        """Continue from the checkpoint at ``path``; one that does not fit this model and training is one line."""
+        state = load_checkpoint(path)
+        load_model_state(self.model, state["model"], path, self.model_name)
+        try:
+            self.load_state(state)
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise NerfpipeError(f"checkpoint does not fit this training ({' '.join(str(exc).split())[:300]})", path) from exc
 
     def load_state(self, state: dict) -> None:
         self.model.load_state_dict(state["model"])
@@ -200,9 +229,7 @@ class Trainer:
         """Seconds on the configured clock (see :attr:`TrainerConfig.clock`)."""
         if self.cfg.clock == "cpu":
             return time.process_time() / max(torch.get_num_threads(), 1)
-        if self.cfg.clock != "wall":
-            raise NerfpipeError(f"unknown clock {self.cfg.clock!r} (wall or cpu)")
-        return time.perf_counter()
+        return time.perf_counter()  # "wall": TrainerConfig refuses any other value
 
     def apply_lr(self) -> None:
         """Set every group's rate from the model's schedule (on the optimiser's own groups: loading a
@@ -223,7 +250,7 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         checkpoint = find_checkpoint(self.out) if self.cfg.resume else None
         if checkpoint is not None:
-            self.load_state(load_checkpoint(checkpoint))
+            self.resume_from(checkpoint)
         else:
             torch.set_rng_state(self.torch_rng)
         self.write_config()

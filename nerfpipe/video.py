@@ -7,6 +7,9 @@ import numpy as np
 from nerfpipe.atomic import atomic_write
 from nerfpipe.errors import require
 
+VIDEO_DEPENDENCIES = (("imageio_ffmpeg", "video"),)
+"""What :func:`write_video` needs beyond the core (checked up front by whoever will write one)."""
+
 
 def _frames(frames) -> "list[np.ndarray]":
     out = [np.asarray(f) for f in frames]
@@ -25,7 +28,7 @@ def write_gif(frames, path: "str | Path", fps: float = 15.0) -> Path:
 
 def write_video(frames, path: "str | Path", fps: float = 15.0) -> Path:
     """Write uint8 frames as an H.264 MP4 (odd sizes are padded by one pixel to even)."""
-    require("imageio_ffmpeg", "video")
+    require(*VIDEO_DEPENDENCIES[0])
     import imageio.v2 as imageio
 
     frames = _frames(frames)

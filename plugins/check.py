@@ -52,4 +52,5 @@ STAGE = StageSpec(
     produces=(CHECK_JSON,),
     provides=("check",),
     restore=restore,
+    dependencies=(("kornia", "kornia"),),
 )

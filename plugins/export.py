@@ -5,7 +5,9 @@
   normalisation undone), with per-frame intrinsics ``fl_x fl_y cx cy w h``, ``camera_model`` and
   distortion (``k1 k2 p1 p2`` for OPENCV, ``k1..k4`` for OPENCV_FISHEYE). ``cx cy`` keep the
   COLMAP/nerfstudio convention (top-left pixel centre at 0.5). ``file_path`` points into
-  ``export/images/``: links to the input images (or copies with ``copy_images``); in-memory
+  ``export/images/``: hard links to the input images where the file system allows (copies with
+  ``copy_images``, or across file systems; not symlinks, which readers refuse as paths out of the
+  dataset); in-memory
   images (npz) are written as PNG. Cameras without an image (test poses) are left out here.
 * ``export/trajectory.json``: every camera as an Open3D ``PinholeCameraTrajectory``
   (``open3d.io.read_pinhole_camera_trajectory``). Open3D's extrinsic is world-to-camera with
@@ -40,7 +42,7 @@ class ExportConfig:
     """Options of the ``export`` stage."""
 
     copy_images: bool = False
-    """Copy the input images into ``export/images`` (portable) instead of linking them."""
+    """Always copy the input images into ``export/images`` (portable) instead of hard-linking them where possible."""
 
 
 def input_frame_cameras(scene: SceneData) -> Cameras:
@@ -87,10 +89,13 @@ def _place_image(scene: SceneData, i: int, folder: Path, copy: bool) -> str:
         return name
     src = Path(scene.images.paths[i]).resolve()
     name = f"{i:05d}_{src.name}"
-    if copy:
-        shutil.copy2(src, folder / name)
-    else:
-        os.symlink(src, folder / name)
+    if not copy:
+        try:
+            os.link(src, folder / name)  # a hard link is a file of the export (readers refuse symlinks out of a dataset)
+            return name
+        except OSError:  # another file system, or links not allowed: copy
+            pass
+    shutil.copy2(src, folder / name)
     return name
 
 
@@ -151,4 +156,5 @@ STAGE = StageSpec(
     run=run,
     requires=("scene",),
     produces=(TRANSFORMS, TRAJECTORY),
+    dependencies=(("open3d", "mesh"),),
 )

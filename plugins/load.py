@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from nerfpipe.errors import NerfpipeError
-from nerfpipe.scene import SceneData
+from nerfpipe.image_file import image_uint8
+from nerfpipe.paths import resolve_inside
+from nerfpipe.scene import SceneData, check_images
 from nerfpipe.stages import StageContext, StageSpec, atomic_path, write_json
 
 SCENE_JSON = "scene.json"
@@ -71,12 +73,14 @@ def write_reconstruction(rec, images: "Path | dict[str, np.ndarray]", target: Pa
 
 
 def _write_images(images: "dict[str, np.ndarray]", folder: Path) -> None:
+    """PNG files named by the dict's keys; a name must stay inside ``folder``, an array must be an image."""
     import imageio.v3 as iio
 
     for name, array in images.items():
-        path = folder / name
+        path = resolve_inside(folder, name, "images")
+        pixels = image_uint8(array, f"images[{name!r}]")
         path.parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(path, np.asarray(array, dtype=np.uint8))
+        iio.imwrite(path, pixels, extension=".png")
 
 
 def input_path(ctx: StageContext) -> "tuple[Path, str | None]":
@@ -98,17 +102,26 @@ def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
     path, fmt = input_path(ctx)
     fmt = config.format or fmt
     scene = data_adapters.load(path, fmt)
+    check_images(scene)  # adapters read headers only: a truncated image stops the run here, before any work
     write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt))
     ctx.log.info("loaded %d cameras (%s) from %s", len(scene.cameras), scene.format, path)
     return {"scene": scene, SCENE_JSON: ctx.path(SCENE_JSON)}
 
 
 def restore(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
-    """Reload the scene recorded in ``scene.json``."""
+    """Reload the scene recorded in ``scene.json``: the run's own input, or a folder inside the run
+    (``input``, ``sfm``); a record naming anything else is refused (run folders are passed around)."""
     import data_adapters
 
-    record = json.loads(ctx.path(SCENE_JSON).read_text())
-    return {"scene": data_adapters.load(record["input"], record["format"])}
+    file = ctx.path(SCENE_JSON)
+    try:
+        record = json.loads(file.read_text())
+        path, fmt = Path(record["input"]), record["format"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise NerfpipeError(f"not a scene record of the load stage ({type(exc).__name__}: {exc})", file) from exc
+    if ctx.source is None or path != Path(ctx.source).resolve():  # else the scene was read in the run folder
+        path = resolve_inside(ctx.run_dir, path, file)
+    return {"scene": data_adapters.load(path, fmt)}
 
 
 STAGE = StageSpec(

@@ -18,7 +18,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 
-from nerfpipe.mesh.pipeline import MeshConfig
+from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig
 from nerfpipe.mesh.trained import RenderedViews
 from nerfpipe.stages import StageContext, StageSpec, atomic_path
 
@@ -103,4 +103,5 @@ STAGE = StageSpec(
     run=run,
     requires=("scene", "model"),
     produces=(MESH_PLY, MESH_JSON),
+    dependencies=MESH_DEPENDENCIES,
 )

@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
+from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
+from nerfpipe.errors import refuse_unless
 from nerfpipe.stages import StageContext, StageSpec, atomic_path
 
 RENDER_DIR = "render"
@@ -43,6 +45,14 @@ class RenderConfig:
     """Under a time budget, never fewer frames than this (the resolution drops instead)."""
     budget_share: float = 0.4
     """Share of the pipeline's remaining time budget this stage may spend."""
+
+    def __post_init__(self) -> None:
+        refuse_unless((
+            ("frames", 1 <= self.frames <= 10_000, "between 1 and 10000", self.frames), ("scale", 0 < self.scale <= 16, "a positive factor (at most 16)", self.scale),
+            ("chunk", self.chunk >= 1, "at least 1", self.chunk), ("fps", 0 < self.fps <= 240, "in (0, 240]", self.fps),
+            ("max_size", self.max_size >= 1, "at least 1", self.max_size), ("min_frames", self.min_frames >= 1, "at least 1", self.min_frames),
+            ("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share),
+        ))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -128,4 +138,5 @@ STAGE = StageSpec(
     requires=("scene", "model"),
     produces=(RENDER_DIR,),
     provides=("views",),
+    dependencies=SEQUENCE_DEPENDENCIES,
 )

@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Literal
 
 from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.image_file import image_header, open_image
+from nerfpipe.paths import resolve_inside
 from nerfpipe.stages import StageContext, StageSpec, atomic_path
 
 SFM_DIR = "sfm"
@@ -73,7 +75,8 @@ def applies(ctx: StageContext) -> bool:
 
 
 def _photos(folder: Path) -> "list[Path]":
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
+    """The photos of ``folder``; one that is a symlink out of it is refused, as in every dataset."""
+    return sorted(resolve_inside(folder, p.name) for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
 
 
 def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tuple[int, int, str]]":
@@ -83,19 +86,17 @@ def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tupl
     out.mkdir(parents=True, exist_ok=True)
     info = []
     for p in photos:
-        with Image.open(p) as im:
-            exif = im.getexif()
-            model = str(exif.get(0x0110, ""))  # EXIF 'Model'
-            scale = max_size / max(im.size) if max_size > 0 else 1.0
-            if scale >= 1.0:
+        h, w, _ = image_header(p)
+        scale = max_size / max(w, h) if max_size > 0 else 1.0
+        size = (round(w * scale), round(h * scale)) if scale < 1.0 else None
+        with open_image(p, draft=size) as im:  # decoded here, so a broken photo is one line naming it
+            model = str(im.getexif().get(0x0110, ""))  # EXIF 'Model'
+            if size is None:
                 (out / p.name).symlink_to(p.resolve())
-                info.append((*im.size, model))
+                info.append((w, h, model))
                 continue
-            size = (round(im.width * scale), round(im.height * scale))
-            exif_bytes = im.info.get("exif", b"")
-            im.draft("RGB", size)  # JPEG: decode at a reduced scale (>= size), much faster
             small = im.convert("RGB").resize(size, Image.LANCZOS)
-            small.save(out / p.name, quality=95, exif=exif_bytes)
+            small.save(out / p.name, quality=95, exif=im.info.get("exif", b""))
             info.append((*small.size, model))
     return info
 
@@ -202,7 +203,10 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     work = ctx.path(WORK_DIR)
     shutil.rmtree(work, ignore_errors=True)
     info = prepare_images(photos, work / "images", config.max_image_size)
-    rec, seconds = reconstruct(work / "images", work, config, info, ctx.time_left())
+    try:
+        rec, seconds = reconstruct(work / "images", work, config, info, ctx.time_left())
+    except NerfpipeError as exc:  # name the user's photos, not the scratch folder
+        raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
     record = summary(rec, photos, seconds)

@@ -17,7 +17,8 @@ import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from nerfpipe import checkpoint
+from nerfpipe import checkpoint, evaluation
+from nerfpipe.errors import NerfpipeError
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
 
@@ -43,6 +44,12 @@ class TrainStageConfig:
     budget_share: float = 0.6
     """Share of the pipeline's remaining time budget given to training (the rest: evaluation, later stages)."""
 
+    def __post_init__(self) -> None:
+        """The model name and options are checked when the pipeline is built, not after the stages before this one ran."""
+        model_config(self.model, self.model_options)
+        if not 0 < self.budget_share <= 1:
+            raise NerfpipeError(f"--budget-share must be in (0, 1], got {self.budget_share}")
+
 
 def model_config(name: str, options: dict):
     """The registered model's config with ``options`` merged in (unknown keys are errors)."""
@@ -50,7 +57,12 @@ def model_config(name: str, options: dict):
     from nerfpipe.runs import from_dict, to_dict
 
     spec = get_model(name)
-    return from_dict(spec.config, _merge(to_dict(spec.config()), options))
+    if not isinstance(options, dict):
+        raise NerfpipeError(f"model_options must be a table of the '{name}' model's options, not {type(options).__name__}")
+    try:
+        return from_dict(spec.config, _merge(to_dict(spec.config()), options))
+    except (TypeError, ValueError) as exc:  # the model config's own checks (an unknown preset, a wrong type)
+        raise NerfpipeError(f"model_options of the '{name}' model: {exc}") from exc
 
 
 def _merge(base: dict, over: dict) -> dict:
@@ -112,4 +124,5 @@ STAGE = StageSpec(
     produces=(CHECKPOINT, METRICS),
     provides=("model", "metrics"),
     restore=restore,
+    dependencies=evaluation.dependencies(TrainStageConfig().trainer),
 )

@@ -4,7 +4,7 @@ of the lego training images against the Blender ground truth."""
 
 import json
 import math
-import os
+import shutil
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -157,14 +157,14 @@ def test_ngp_frames_without_image_are_skipped(tmp_path, scene_path):
     (tmp_path / "images").mkdir()
     for image in sorted((src / "images").glob("*.jpg")):
         if image.stem not in NGP_DELETED:
-            os.symlink(image, tmp_path / "images" / image.name)
+            shutil.copyfile(image, tmp_path / "images" / image.name)  # a symlink out of the dataset is refused
     with pytest.warns(UserWarning, match="17 of 67 frames have no image file"):
         scene = data_adapters.load(tmp_path)
     assert len(scene.cameras) == 50
     assert not any(Path(scene.images.name(i)).stem in NGP_DELETED for i in range(50))
     for image in (tmp_path / "images").iterdir():
         image.unlink()
-    with pytest.raises(NerfpipeError, match="none of the 67 frames"), pytest.warns(UserWarning):
+    with pytest.raises(NerfpipeError, match="none of the 67 frames"):
         data_adapters.load(tmp_path)
 
 
@@ -399,8 +399,8 @@ def _nan(doc):
 
 
 BAD_CAPTURES = {
-    "relative escape": (_frame0(file_path="../../etc/passwd"), "points outside the dataset folder"),
-    "absolute escape": (_frame0(file_path="/etc/passwd"), "points outside the dataset folder"),
+    "relative escape": (_frame0(file_path="../../etc/passwd"), "points outside the folder"),
+    "absolute escape": (_frame0(file_path="/etc/passwd"), "points outside the folder"),
     "nan pose": (_nan, r"transform_matrix\[.\] contains NaN"),
     "scaled pose": (_scaled, r"is not a rotation plus translation \(det 1.7"),
     "reflected pose": (_reflected, r"is not a rotation plus translation \(det -1"),
@@ -412,7 +412,7 @@ BAD_CAPTURES = {
     "missing matrix": (lambda d: d["frames"][0].pop("transform_matrix"), "has no transform_matrix"),
     "no frames": (lambda d: d.pop("frames"), "no 'frames' list"),
     "missing ply": (lambda d: d.update(ply_file_path="sparse_pc.ply"), "point cloud file is missing"),
-    "ply escape": (lambda d: d.update(ply_file_path="../points.ply"), "points outside the dataset folder"),
+    "ply escape": (lambda d: d.update(ply_file_path="../points.ply"), "points outside the folder"),
 }
 
 
@@ -444,7 +444,7 @@ def test_image_size_disagreeing_with_camera_names_the_file(tmp_path):
 def test_corrupt_image_names_the_file(tmp_path):
     root = _capture(tmp_path)
     (root / "images" / "frame_00003.png").write_bytes(b"not a png")
-    with pytest.raises(NerfpipeError, match="cannot read image header") as err:
+    with pytest.raises(NerfpipeError, match="not an image file") as err:
         data_adapters.load(root)
     assert err.value.path == root / "images" / "frame_00003.png"
 
@@ -459,7 +459,7 @@ def test_blender_missing_image_names_it(tmp_path):
 
 def test_blender_escape_and_bad_pose(tmp_path):
     root = _blender_set(tmp_path / "a", _frame0(file_path="../../../etc/passwd"))
-    with pytest.raises(NerfpipeError, match="outside the dataset folder"):
+    with pytest.raises(NerfpipeError, match="points outside the folder"):
         data_adapters.load(root)
     root = _blender_set(tmp_path / "b", _scaled)
     with pytest.raises(NerfpipeError, match="not a rotation") as err:

@@ -252,3 +252,15 @@ def test_mesh_metrics_show_the_free_space_violation(full_run):
     for value in (0.9688, 0.6221, 25656, 0.02684):
         assert fmt(value) in mesh, value
     assert "free-space violation" in mesh and "sight lines (camera to sparse point)" in mesh
+
+
+def test_a_figure_linked_out_of_the_run_folder_is_not_embedded(full_run, tmp_path):
+    """Run folders are passed around: a figure that is a symlink to a file elsewhere (a key, a photo) must
+    not end up base64 in a report the user then shares; the page says why it is absent."""
+    secret = tmp_path / "secret.png"
+    secret.write_bytes((full_run / "train" / "cameras.png").read_bytes())
+    (full_run / "train" / "cameras.png").unlink()
+    (full_run / "train" / "cameras.png").symlink_to(secret)
+    page = _run_report(full_run)
+    assert base64.b64encode(secret.read_bytes()).decode("ascii")[:200] not in page
+    assert "not embedded" in page and "cameras.png" in page

@@ -2,6 +2,7 @@
 in-memory pycolmap SfM handed over to nerfpipe's Python API."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -24,11 +25,11 @@ def known_focal(root: Path, longest_side: int) -> float:
 
 @pytest.fixture(scope="module")
 def photos(scene_path, tmp_path_factory) -> Path:
-    """A folder with a few of the Sceaux photos (links), as a user would hand over."""
+    """A folder with a few of the Sceaux photos (copies: a symlink out of a dataset is refused), as a user would hand over."""
     root = tmp_path_factory.mktemp("sceaux")
     (root / "images").mkdir()
     for name in PHOTOS:
-        (root / "images" / name).symlink_to(scene_path("photos_sceaux_castle") / "images" / name)
+        shutil.copyfile(scene_path("photos_sceaux_castle") / "images" / name, root / "images" / name)
     return root
 
 

@@ -160,5 +160,5 @@ def test_cpu_clock_budget_counts_process_seconds(tiny_scene, tmp_path, monkeypat
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     t.train()
     assert t.step == 4 and t.train_seconds == 12.0  # 3 CPU seconds per step, stopped once 10 were spent
-    with pytest.raises(NerfpipeError, match="unknown clock"):
-        Trainer(tcfg(clock="sundial"), tiny_scene, "vanilla", MODEL, tmp_path / "x").clock()
+    with pytest.raises(NerfpipeError, match="--clock must be wall or cpu"):
+        tcfg(clock="sundial")

@@ -24,6 +24,9 @@ def check(path: DatasetPath, json: bool = False, samples: int = 16, seed: int = 
     from nerfpipe.commands.info import print_table
     from nerfpipe.consistency import check_scene
 
+    from nerfpipe.errors import refuse_unless
+
+    refuse_unless([("samples", samples >= 0, "0 or more", samples)])
     torch.set_num_threads(min(2, torch.get_num_threads()))
     report = check_scene(data_adapters.load(path), samples=samples, seed=seed)
     figures = report.as_dict()

@@ -40,8 +40,11 @@ def eval_mesh(
     """
     import json as _json
 
+    from nerfpipe.errors import refuse_unless
     from nerfpipe.mesh.export import read_mesh
 
+    refuse_unless([("samples", samples >= 1, "at least 1", samples),
+                   ("threshold", threshold is None or threshold > 0, "a positive distance", threshold)])  # fmt: skip
     pred = read_mesh(mesh)
     if Path(ref).is_file() and Path(ref).suffix.lower() in MESH_SUFFIXES:
         result = {"reference": str(ref), **_against_mesh(pred, read_mesh(ref), threshold, samples)}

@@ -64,7 +64,30 @@ def fit2d(
     from nerfpipe.image_field import fit2d_run
     from nerfpipe.image_field.images import load_target
 
-    torch.set_num_threads(max(1, threads))
+    from nerfpipe.errors import refuse_unless, require_all
+    from nerfpipe.paths import check_output_folder
+    from nerfpipe.plots import PLOT_DEPENDENCIES
+
+    refuse_unless((
+        ("iterations", iterations is None or iterations >= 1, "at least 1", iterations),
+        ("lr", lr is None or lr > 0, "positive", lr), ("lr_final_factor", lr_final_factor is None or lr_final_factor > 0, "positive", lr_final_factor),
+        ("batch_size", batch_size is None or batch_size >= 0, "0 (every pixel) or more", batch_size),
+        ("max_seconds", max_seconds is None or max_seconds > 0, "positive", max_seconds),
+        ("num_evals", num_evals is None or num_evals >= 1, "at least 1", num_evals),
+        ("max_pixels", max_pixels >= 4, "at least 4", max_pixels), ("threads", threads >= 1, "at least 1", threads),
+        ("sweep_l", not sweep or (sweep_l and all(v >= 0 for v in sweep_l)), "frequencies 0 or more", sweep_l),
+        ("sweep_lr", not sweep or (sweep_lr and all(v > 0 for v in sweep_lr)), "positive rates", sweep_lr),
+        ("num_frequencies", num_frequencies is None or 0 <= num_frequencies <= 64, "between 0 and 64", num_frequencies),
+        ("hidden_width", hidden_width is None or 1 <= hidden_width <= 4096, "between 1 and 4096", hidden_width),
+        ("num_layers", num_layers is None or 1 <= num_layers <= 64, "between 1 and 64", num_layers),
+        ("grid_levels", grid_levels is None or 1 <= grid_levels <= 32, "between 1 and 32", grid_levels),
+        ("grid_features", grid_features is None or 1 <= grid_features <= 64, "between 1 and 64", grid_features),
+        ("grid_max_resolution", grid_max_resolution is None or grid_max_resolution >= 2, "at least 2", grid_max_resolution),
+        ("grid_log2_hashmap_size", grid_log2_hashmap_size is None or 4 <= grid_log2_hashmap_size <= 30, "between 4 and 30", grid_log2_hashmap_size),
+    ))  # fmt: skip
+    check_output_folder(out)
+    require_all(PLOT_DEPENDENCIES)  # the figures are written after the fit
+    torch.set_num_threads(threads)
     target = load_target(image, max_pixels)
     for note in target.notes:
         fit2d_run.console().print(f"[yellow]nerfpipe: warning:[/] {target.source}: {note}")

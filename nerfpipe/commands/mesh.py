@@ -55,19 +55,25 @@ def mesh(
 
     import torch
 
-    from nerfpipe.errors import NerfpipeError
-    from nerfpipe.mesh.pipeline import MeshConfig, write_meshes
+    from nerfpipe.devices import check_device
+    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
+    from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig, write_meshes
+    from nerfpipe.paths import check_output_folder
     from nerfpipe.mesh.trained import RenderedViews, mesh_model
     from nerfpipe.runs import load_run
 
     if level is not None and method != "mc":
         raise NerfpipeError("--level sets the marching-cubes iso-level: add --method mc")
-    if threads is not None:
-        torch.set_num_threads(threads)
-    scene, model, _ = load_run(Path(run_dir), device)
+    refuse_unless([("threads", threads is None or threads >= 1, "at least 1", threads)])
     cfg = MeshConfig(method=method, resolution=resolution, level=level, level_from=level_from, faces=faces, min_component=min_component,
                      remove_unseen=remove_unseen, close_holes=close_holes, colors=colors)
-    result = mesh_model(cfg, model, scene, RenderedViews(tsdf_views, tsdf_size, chunk), device)
-    paths = write_meshes(result, Path(out) if out is not None else Path(run_dir) / "mesh", scene.world_from_input)
+    views = RenderedViews(tsdf_views, tsdf_size, chunk)
+    out = check_output_folder(Path(out) if out is not None else Path(run_dir) / "mesh")
+    require_all(MESH_DEPENDENCIES)
+    if threads is not None:
+        torch.set_num_threads(threads)
+    scene, model, _ = load_run(Path(run_dir), check_device(device))
+    result = mesh_model(cfg, model, scene, views, device)
+    paths = write_meshes(result, out, scene.world_from_input)
     print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()]}, indent=2))
     return 0

@@ -31,8 +31,9 @@ def render(
 
     import torch
 
-    from nerfpipe.artifacts import write_sequence
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES, write_sequence
+    from nerfpipe.devices import check_device
+    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.orbit import path_cameras
     from nerfpipe.pixel_sampler import BACKGROUNDS, background_colors
     from nerfpipe.render import render_cameras, resize_cameras
@@ -43,11 +44,13 @@ def render(
         raise NerfpipeError(f"unknown --path '{path}' (test or orbit)")
     if background is not None and background not in BACKGROUNDS:
         raise NerfpipeError(f"unknown --background '{background}' ({' or '.join(BACKGROUNDS)})")
-    scene, model, cfg = load_run(Path(run_dir), device)
+    refuse_unless([("frames", 1 <= frames <= 10_000, "between 1 and 10000", frames), ("chunk", chunk >= 1, "at least 1", chunk)])
+    wh = None if size is None else _parse_size(size)
+    require_all(SEQUENCE_DEPENDENCIES)
+    scene, model, cfg = load_run(Path(run_dir), check_device(device))
     cams = path_cameras(scene, path, frames)
-    if size is not None:
-        w, h = _parse_size(size)
-        cams = resize_cameras(cams, w, h)
+    if wh is not None:
+        cams = resize_cameras(cams, *wh)
     bg = background or backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1]
     with torch.no_grad():
         views = render_cameras(model, cams.to(device), chunk, background_colors(bg, 1)[0])
@@ -64,6 +67,6 @@ def _parse_size(text: str) -> "tuple[int, int]":
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError as exc:
         raise NerfpipeError(f"--size must be WxH, e.g. 800x800 (got '{text}')") from exc
-    if w <= 0 or h <= 0:
-        raise NerfpipeError(f"--size must be positive (got '{text}')")
+    if not (0 < w <= 8192 and 0 < h <= 8192):
+        raise NerfpipeError(f"--size must be positive, at most 8192x8192 (got '{text}')")
     return w, h

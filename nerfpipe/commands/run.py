@@ -122,6 +122,10 @@ def run(
         resume: skip stages that finished before with the same options.
         device: torch device for the stages that compute.
     """
+    from nerfpipe.errors import NerfpipeError
+
+    if not Path(path).exists():
+        raise NerfpipeError("no such file or folder", path)
     console = _console()
     _log_to(console)
     pipe = _pipeline(stages, pipeline, installed_stages(console))
@@ -148,18 +152,21 @@ def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]
         run_dir: a run folder made by ``nerfpipe run``.
     """
     from nerfpipe.errors import NerfpipeError
-    from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, read_marker, run_stage
+    from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, marker_path, read_marker, run_stage
 
     console = _console()
     _log_to(console)
     record = Path(run_dir) / RUN_RECORD
     if not record.is_file():
         raise NerfpipeError(f"not a run folder (no {RUN_RECORD})", run_dir)
-    source = json.loads(record.read_text()).get("source")
+    try:
+        source = json.loads(record.read_text())["source"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise NerfpipeError(f"not a run record ({type(exc).__name__}: {exc})", record) from exc
     pipe = Pipeline([name], registry=installed_stages(console))
     ctx = pipe.context(run_dir, source)
     done = read_marker(ctx, name)
-    config = make_config(pipe.specs[0], done["config"]) if done else pipe.configs[name]
+    config = make_config(pipe.specs[0], done.get("config"), marker_path(ctx, name)) if done else pipe.configs[name]
     rec = run_stage(pipe.specs[0], config, ctx)
     console.print(f"stage {rec.name}: {rec.status} in {rec.seconds:.1f} s -> {', '.join(rec.artifacts) or 'nothing'}")
     return 0

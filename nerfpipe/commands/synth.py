@@ -12,7 +12,10 @@ def parse_size(size: str) -> "tuple[int, int]":
     parts = size.lower().split("x")
     if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
         raise NerfpipeError(f"--size must look like WIDTHxHEIGHT (e.g. 128x128), got '{size}'")
-    return int(parts[0]), int(parts[1])
+    w, h = int(parts[0]), int(parts[1])
+    if max(w, h) > 8192:
+        raise NerfpipeError(f"--size must be at most 8192x8192, got '{size}'")
+    return w, h
 
 
 def synth(

@@ -55,23 +55,27 @@ def train(
 
     from data_adapters import load
 
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe import evaluation
+    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.models.registry import get_model
+    from nerfpipe.paths import check_output_folder
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     spec = get_model(model)
     model_cfg = spec.config()
+    refuse_unless([("num_samples", num_samples is None or num_samples >= 1, "at least 1", num_samples)])
     if num_samples is not None:
         if not any(f.name == "num_samples" for f in dataclasses.fields(model_cfg)):
             raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
         model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
-    scene = load(path)
     cfg = TrainerConfig(
         iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every,
         eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
         video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
-    out = Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}"
+    out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
+    require_all(evaluation.dependencies(cfg))  # before the dataset is read; the Trainer checks again for library use
+    scene = load(path)
     metrics = Trainer(cfg, scene, model, model_cfg, out).train()
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")

@@ -1,13 +1,12 @@
 """The target image of a 2D fit: read, checked, made RGB and kept to a workable size."""
 
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from nerfpipe.errors import NerfpipeError
-from nerfpipe.scene import read_image_uint8
+from nerfpipe.image_file import read_image_uint8
 
 DEFAULT_IMAGE = "skimage:astronaut"
 """Used when no image is given: a photograph shipped inside scikit-image (no download)."""
@@ -32,9 +31,7 @@ def load_target(path: "str | Path | None", max_pixels: int = 2048 * 2048) -> Tar
     if path is None:
         img, source = _skimage_photo(DEFAULT_IMAGE.split(":", 1)[1]), DEFAULT_IMAGE
     else:
-        with warnings.catch_warnings():  # imageio warns (leaked handles, legacy plugins) while probing
-            warnings.simplefilter("ignore")
-            img, source = read_image_uint8(Path(path)), str(path)
+        img, source = read_image_uint8(Path(path)), str(path)
     notes: "list[str]" = []
     if img.shape[0] < 2 or img.shape[1] < 2:
         raise NerfpipeError(f"image is {img.shape[1]}×{img.shape[0]} pixels; fitting needs at least 2×2", path)

@@ -8,6 +8,8 @@ which Open3D, trimesh and MeshLab read.
 
 from pathlib import Path
 
+import numpy as np
+
 from nerfpipe.atomic import atomic_write
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
@@ -52,6 +54,10 @@ def read_mesh(path: "str | Path") -> TriangleMesh:
         raise NerfpipeError(f"cannot read mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise NerfpipeError("file holds no triangles", path)
+    if not np.isfinite(m.vertices).all():
+        raise NerfpipeError("mesh has vertices with NaN or Inf coordinates", path)
+    if m.faces.min() < 0 or m.faces.max() >= len(m.vertices):
+        raise NerfpipeError(f"mesh has faces that index missing vertices (it has {len(m.vertices)})", path)
     colors = None
     if m.visual.kind == "vertex":
         colors = m.visual.vertex_colors[:, :3]

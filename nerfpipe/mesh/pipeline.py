@@ -7,6 +7,7 @@ is written until every mesh is built, so bad input leaves no files behind.
 """
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -17,7 +18,7 @@ import numpy as np
 
 
 from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.errors import NerfpipeError, refuse_unless
 from nerfpipe.mesh.clean import (
     close_holes, faces_blocking_sight_lines, faces_near_box_sides, faces_on_or_below_plane, hausdorff_distance, remove_small_components,
     simplify, support_plane, visible_faces,
@@ -32,6 +33,9 @@ from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
 from nerfpipe.scene import Similarity
 from nerfpipe.typing import Float, Tensor
+
+MESH_DEPENDENCIES = (("skimage.measure", "mesh"), ("open3d", "mesh"), ("pymeshlab", "mesh"), ("trimesh", "mesh"))
+"""What meshing, cleaning, simplifying and writing need beyond the core (checked before the work starts)."""
 
 DEFAULT_FACES = 100_000
 FILES = ("mesh.ply", "mesh_simplified.ply", "mesh_views.png", "mesh.json")
@@ -131,6 +135,19 @@ class MeshConfig:
     """Vertex colours from the field (mc) or the rendered images (tsdf)."""
     chunk: int = 1 << 18
     """Points per density / colour call."""
+
+    def __post_init__(self) -> None:
+        """Impossible values stop here, before a model is loaded or a file written."""
+        refuse_unless((
+            ("resolution", 8 <= self.resolution <= 4096, "between 8 and 4096", self.resolution),
+            ("level", self.level is None or math.isfinite(self.level), "a finite density", self.level),
+            ("faces", self.faces is None or self.faces >= 4, "at least 4", self.faces),
+            ("min_component", self.min_component is None or 0 <= self.min_component < 1, "a fraction in [0, 1)", self.min_component),
+            ("close_holes", self.close_holes >= 0, "0 or more", self.close_holes),
+            ("level_opacity", 0 < self.level_opacity < 1, "in (0, 1)", self.level_opacity),
+            ("level_quantile", 0 < self.level_quantile < 1, "in (0, 1)", self.level_quantile),
+            ("chunk", self.chunk >= 1, "at least 1", self.chunk),
+        ))  # fmt: skip
 
 
 BUDGET_RESOLUTIONS = (256, 192, 128)

@@ -7,6 +7,7 @@ Shared by ``nerfpipe mesh`` and the ``mesh`` stage. The model is used only throu
 
 from dataclasses import dataclass
 
+from nerfpipe.errors import refuse_unless
 from nerfpipe.mesh.pipeline import MeshConfig, MeshOutputs
 
 MIN_CROP_POINTS = 20
@@ -32,6 +33,13 @@ class RenderedViews:
     """What the rest of the mesh stage takes under a budget (fusion, cleaning, simplification, metrics): 20-24 s
     on 2 cores for colmap_mouse and the Sceaux castle (half the time left for the renders overran the castle's
     31 s by 8 s)."""
+
+    def __post_init__(self) -> None:
+        refuse_unless((
+            ("tsdf_views", self.tsdf_views >= 1, "at least 1", self.tsdf_views),
+            ("tsdf_size", 8 <= self.tsdf_size <= 8192, "between 8 and 8192 pixels", self.tsdf_size),
+            ("chunk", self.chunk >= 1, "at least 1", self.chunk),
+        ))  # fmt: skip
 
 
 def mesh_model(

@@ -132,6 +132,10 @@ class FastConfig:
     tv_weight: float = 0.0
     """Weight of total variation on the finest density grid (0 = off)."""
 
+    def __post_init__(self) -> None:
+        if self.preset != "auto" and self.preset not in PRESETS:  # checked when configured, not when training starts
+            raise ValueError(f"unknown preset {self.preset!r}; choose from auto, {', '.join(PRESETS)}")
+
     def setup(self, scene_info: SceneInfo) -> "FastModel":
         return FastModel(self, scene_info)
 
