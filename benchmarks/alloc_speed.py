@@ -9,7 +9,9 @@ import subprocess
 import sys
 
 CODE = """
-import time, torch, nerfpipe
+from nerfpipe import runtime
+runtime.keep_freed_memory()  # follows NERFPIPE_KEEP_FREED_MEMORY
+import time, torch
 torch.zeros(2097152, 4)
 t = time.perf_counter()
 for _ in range(20):

@@ -11,6 +11,11 @@ shared machine, so CPU seconds of the process are recorded too, and ``clock="cpu
 them (divided by the thread count).
 """
 
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe import runtime
+
+    runtime.apply()
+
 import dataclasses
 import os
 import time

@@ -7,6 +7,11 @@ periodic full-image evaluation; CPU seconds and the load average are recorded ne
 because wall-clock time is inflated on a shared machine.
 """
 
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe import runtime
+
+    runtime.apply()
+
 import os
 from pathlib import Path
 from typing import Optional

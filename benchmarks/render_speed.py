@@ -16,6 +16,11 @@ The machine may be shared: the 1-minute load average is recorded next to every t
 process CPU seconds. Prints a table and writes ``render_speed.json`` to ``--out`` when given.
 """
 
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe import runtime
+
+    runtime.apply()
+
 import dataclasses
 import json
 import os

@@ -7,7 +7,10 @@ Prints one JSON line per mark (step, cumulative training seconds, wall and CPU/t
 ``occupancy.NAME=VALUE`` sets an option of the occupancy grid, ``behind.NAME=VALUE`` one of the field behind the box.
 """
 
-import nerfpipe  # noqa: F401  (first: the OpenMP and allocator settings precede torch, as in the CLI)
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe import runtime
+
+    runtime.apply()
 
 import ast
 import dataclasses

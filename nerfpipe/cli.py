@@ -6,6 +6,10 @@ function, so ``nerfpipe --help`` stays fast.
 
 User errors (:class:`~nerfpipe.errors.NerfpipeError`) print one line and exit 2;
 ``--debug`` anywhere on the command line shows the traceback instead.
+
+The command is the one place that changes process-wide settings (:func:`nerfpipe.runtime.apply`:
+OpenMP waiting, glibc's allocator). It does so first, before anything imports torch, which is why
+this module and ``nerfpipe/__init__.py`` import nothing heavy at the top.
 """
 
 import os
@@ -36,6 +40,9 @@ def _commands() -> dict:
 
 
 def main(argv: "list[str] | None" = None) -> int:
+    from nerfpipe import runtime
+
+    runtime.apply()  # before torch loads OpenMP (the command's choice; importing nerfpipe makes none)
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("NERFPIPE_DEBUG") == "1"
     argv = [a for a in argv if a != "--debug"]

@@ -1,4 +1,10 @@
-"""Process-wide runtime settings nerfpipe applies when imported: OpenMP waiting and glibc's allocator.
+"""Process-wide runtime settings for the ``nerfpipe`` command: OpenMP waiting and glibc's allocator.
+
+Both change the whole process, so they are the program's choice, never a side effect of ``import
+nerfpipe``: the CLI (:func:`nerfpipe.cli.main`, ``python -m nerfpipe``, the ``nerfpipe`` console
+script) and the benchmark programs call :func:`apply` first thing, before torch is imported. A
+program that embeds nerfpipe and wants the same calls ``nerfpipe.runtime.apply()`` before its first
+``import torch``; a library user who does not call it gets torch's and glibc's defaults.
 
 **OpenMP waiting** (:func:`choose_omp_wait_policy`). torch's CPU kernels run in GNU OpenMP parallel
 regions; between two regions the worker threads either spin for a while (GOMP's default) or sleep at
@@ -15,11 +21,11 @@ GOMP default (spin)         15.4 s                      14.2 s for 20 steps
 ==========================  ==========================  ==================================
 
 (and with several multi-threaded torch processes spinning against each other, a training step took
-4.7 s instead of 0.21 s). So nerfpipe keeps GOMP's default when the machine is idle at import and asks
+4.7 s instead of 0.21 s). So the CLI keeps GOMP's default when the machine is idle at start and asks
 for ``PASSIVE`` when other processes keep half of the CPUs or more busy (measured over 50 ms of
 ``/proc/stat``; the 1-minute load average lags by a minute after a heavy process ends). An explicit
 ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` wins. The setting is read once, when torch loads OpenMP:
-import nerfpipe before torch for it to take effect.
+:func:`apply` after torch is loaded leaves the environment alone (it would only reach child processes).
 
 **Allocator** (:func:`keep_freed_memory`). Training allocates and frees the same large tensors every
 step: the gradient of a 128^3 grid of four channels alone is 32 MiB. glibc serves blocks above its
@@ -35,6 +41,7 @@ leaves the allocator alone; other C libraries are left alone.
 import ctypes
 import ctypes.util
 import os
+import sys
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
@@ -54,14 +61,20 @@ def keep_freed_memory(mmap_threshold: int = 1 << 30, trim_threshold: int = (1 <<
 
 
 OMP_WAIT = "unset"
-"""What :func:`choose_omp_wait_policy` decided at import: ``spin`` (GOMP's default), ``passive`` or ``user``."""
+"""What :func:`apply` decided: ``unset`` (never called: a library import), ``spin`` (GOMP's default),
+``passive``, ``user`` (an explicit setting was kept) or ``late`` (torch was loaded already)."""
 
 
-def apply() -> None:
-    """Both settings, as ``import nerfpipe`` applies them (before torch loads OpenMP)."""
+def apply() -> str:
+    """Both settings for this process (the CLI's opt-in; see the module docstring); returns :data:`OMP_WAIT`.
+
+    Call it before ``import torch``. Once per process: later calls change nothing.
+    """
     global OMP_WAIT
-    OMP_WAIT = choose_omp_wait_policy()
-    keep_freed_memory()
+    if OMP_WAIT == "unset":
+        OMP_WAIT = "late" if "torch" in sys.modules else choose_omp_wait_policy()
+        keep_freed_memory()
+    return OMP_WAIT
 
 
 def choose_omp_wait_policy(environ: "dict | None" = None, busy: "float | None" = None, cpus: "int | None" = None) -> str:

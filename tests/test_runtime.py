@@ -1,5 +1,6 @@
-"""The runtime settings nerfpipe applies at import: OpenMP waiting and glibc's allocator."""
+"""The process settings the CLI applies (OpenMP waiting, glibc's allocator), and a library import that applies none."""
 
+import os
 import platform
 import subprocess
 import sys
@@ -21,7 +22,7 @@ def test_environment_opt_out(monkeypatch):
 
 def test_big_tensors_still_allocate_and_free():
     """A 1.25 GiB block is above the raised mmap threshold and a 64 MiB one below it: both work."""
-    code = "import nerfpipe, torch; a = torch.ones(335544320); b = torch.ones(16777216); print(float(a[-1] + b[-1]))"
+    code = "import nerfpipe.runtime as r; r.apply(); import torch; a = torch.ones(335544320); b = torch.ones(16777216); print(float(a[-1] + b[-1]))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "2.0"
 
@@ -49,9 +50,43 @@ def test_busy_cpus_sees_a_busy_process():
         hog.kill()
 
 
-def test_the_import_decision_is_recorded():
-    code = "import nerfpipe.runtime as r, nerfpipe, os; print(r.OMP_WAIT, os.environ.get('OMP_WAIT_POLICY'))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={k: v for k, v in __import__("os").environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")})
+def _without_openmp_settings() -> dict:
+    return {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+
+
+def test_the_cli_decides_before_torch_loads():
+    """``nerfpipe.cli`` imports no torch, and its ``main`` makes the settings first (so OpenMP sees them)."""
+    code = ("import io, sys, contextlib, nerfpipe.cli as cli, nerfpipe.runtime as r, os\n"
+            "assert 'torch' not in sys.modules\n"
+            "with contextlib.redirect_stdout(io.StringIO()): cli.main(['stages'])\n"
+            "print(r.OMP_WAIT, os.environ.get('OMP_WAIT_POLICY'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_without_openmp_settings())
     decision, policy = out.stdout.split()
     assert (decision, policy) in {("spin", "None"), ("passive", "PASSIVE")}
+
+
+SPY = """
+import ctypes, os, sys
+calls = []
+class Spy(ctypes.CDLL):  # records every C function looked up, mallopt included
+    def __getattr__(self, name):
+        calls.append(name)
+        return super().__getattr__(name)
+ctypes.CDLL = Spy
+environ = dict(os.environ)
+import nerfpipe, nerfpipe.runtime as r
+from nerfpipe import Cameras, SceneData, volrend  # the lazy names load torch
+print(r.OMP_WAIT, "mallopt" in calls, dict(os.environ) == environ, "torch" in sys.modules)
+"""
+
+
+def test_importing_nerfpipe_changes_nothing_in_the_process():
+    """No /proc sampling decision, no OMP_WAIT_POLICY, no mallopt: a library import leaves the host alone."""
+    out = subprocess.run([sys.executable, "-c", SPY], capture_output=True, text=True, check=True, env=_without_openmp_settings())
+    assert out.stdout.split() == ["unset", "False", "True", "True"]
+
+
+def test_apply_after_torch_leaves_the_environment_alone():
+    code = "import torch, os, nerfpipe.runtime as r; print(r.apply(), r.apply(), os.environ.get('OMP_WAIT_POLICY'))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_without_openmp_settings())
+    assert out.stdout.split() == ["late", "late", "None"]
