@@ -16,7 +16,8 @@ def depth_range(depths: "list[Tensor]", accs: "list[Tensor]", min_acc: float = 0
     vals = torch.cat([(d / a.clamp(min=1e-6))[a >= min_acc].reshape(-1) for d, a in zip(depths, accs)])
     if vals.numel() == 0:
         return 0.0, 1.0
-    vals = vals[torch.randperm(vals.numel())[:1_000_000]] if vals.numel() > 1_000_000 else vals
+    if vals.numel() > 1_000_000:  # a fixed subset: the same range every call, torch's global stream untouched
+        vals = vals[torch.randperm(vals.numel(), generator=torch.Generator().manual_seed(0))[:1_000_000].to(vals.device)]
     lo, hi = torch.quantile(vals.float(), torch.tensor([q, 1 - q])).tolist()
     return lo, max(hi, lo + 1e-6)
 

@@ -8,6 +8,12 @@ Usable from Python::
 
 Training time (``train_seconds``, the ``time_budget``) counts sampling, forward, backward, the
 optimiser step and callbacks; validation, checkpoints and plots are excluded.
+
+A trainer leaves the process as it found it: the model is initialised from ``seed`` with torch's
+global stream seeded only for that call (:func:`nerfpipe.scoped.seeded_init`), every later random
+draw comes from the run's own generators (``sampler_rng`` for rays and backgrounds, the model's
+``generator`` for jitter and refreshes; both saved in the checkpoint, so a resumed run draws what an
+uninterrupted one would), and ``num_threads`` holds only while :meth:`Trainer.train` runs.
 """
 
 import math
@@ -25,6 +31,7 @@ from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
 from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.scene import SceneData, check_images
+from nerfpipe.scoped import continued_generator, seeded_init, torch_threads
 
 
 MAX_RAYS_PER_STEP = 1 << 22
@@ -67,7 +74,8 @@ class TrainerConfig:
     device: str = "cpu"
     """Torch device."""
     num_threads: "int | None" = None
-    """CPU threads for torch (None: torch's default). On a loaded machine 1 can be much faster for small models."""
+    """CPU threads for torch while training (None: as the process has them; restored afterwards). On a
+    loaded machine 1 can be much faster for small models."""
     background: str = "auto"
     """black | white | random | auto (random in training and white at evaluation for RGBA data, else black)."""
     checkpoint_every: int = 500
@@ -146,10 +154,9 @@ class Trainer:
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
-        if cfg.num_threads:
-            torch.set_num_threads(cfg.num_threads)
-        torch.manual_seed(cfg.seed)
-        self.model: Model = model_config.setup(scene_info(scene)).to(cfg.device)
+        model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene)), cfg.seed)
+        self.model: Model = model.to(cfg.device)
+        self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
         # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
         fused = torch.device(cfg.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
@@ -163,7 +170,6 @@ class Trainer:
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
-        self.torch_rng = torch.get_rng_state()  # jitter stream of this run, independent of other trainers
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
@@ -172,7 +178,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "torch_rng": torch.get_rng_state(),
+            "torch_rng": self.model.generator.get_state(),  # the model's stream (name kept: older checkpoints resume)
             "sampler_rng": self.generator.get_state(),
             "history": self.history,
         }
@@ -192,7 +198,7 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
         for group, lr in zip(self.optimizer.param_groups, initial):
             group["initial_lr"] = lr
-        torch.set_rng_state(state["torch_rng"])
+        self.model.generator.set_state(state["torch_rng"])
         self.generator.set_state(state["sampler_rng"])
         self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
 
@@ -244,6 +250,10 @@ class Trainer:
 
     def train(self) -> dict:
         """Train until ``iters`` or ``time_budget``, then validate and write every output."""
+        with torch_threads(self.cfg.num_threads):
+            return self._train()
+
+    def _train(self) -> dict:
         from nerfpipe.progress import TrainProgress
         from nerfpipe import evaluation
 
@@ -251,8 +261,6 @@ class Trainer:
         checkpoint = find_checkpoint(self.out) if self.cfg.resume else None
         if checkpoint is not None:
             self.resume_from(checkpoint)
-        else:
-            torch.set_rng_state(self.torch_rng)
         self.write_config()
         self.model.train()
         with TrainProgress(self.cfg, self.step, self.train_seconds) as bar:

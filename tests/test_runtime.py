@@ -90,3 +90,38 @@ def test_apply_after_torch_leaves_the_environment_alone():
     code = "import torch, os, nerfpipe.runtime as r; print(r.apply(), r.apply(), os.environ.get('OMP_WAIT_POLICY'))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_without_openmp_settings())
     assert out.stdout.split() == ["late", "late", "None"]
+
+
+TRAIN = """
+import os, sys, torch
+import torch._dynamo  # torch's optimisers import it, and it sets TORCHINDUCTOR_CACHE_DIR: torch's doing, in any host
+environ, threads = dict(os.environ), torch.get_num_threads()
+torch.manual_seed(1234)  # the host's own stream: a library must not move it
+host_rng = torch.get_rng_state()
+import nerfpipe.runtime as r
+from data_adapters import load
+from nerfpipe.models.base import Callback
+from nerfpipe.models.fast import FastConfig
+from nerfpipe.trainer import Trainer, TrainerConfig
+cfg = TrainerConfig(iters=6, rays_per_step=128, eval_every=3, final_eval_views=1, video_frames=0, checkpoint_every=3,
+                    num_threads=1 if threads > 1 else 2, seed=5, write_outputs=False)
+model = FastConfig(levels=(8, 16), occupancy=FastConfig().occupancy.__class__(warmup_steps=0, update_every=2))
+trainer = Trainer(cfg, load(sys.argv[1]), "fast", model, sys.argv[2])
+seen = []
+trainer.hooks.setdefault(Callback.AFTER_TRAIN_ITERATION, []).append(lambda step: seen.append(torch.get_num_threads()))
+trainer.train()
+print(r.OMP_WAIT, dict(os.environ) == environ, torch.equal(torch.get_rng_state(), host_rng),
+      torch.get_num_threads() == threads, set(seen) == {cfg.num_threads})
+"""
+
+
+def test_a_training_leaves_the_process_as_it_found_it(tmp_path):
+    """Import, train (occupancy refreshes, jitter, validation, checkpoints): the environment, torch's global
+    stream and thread count are as before; the run's own thread count held while it trained."""
+    from nerfpipe.synthetic import SynthConfig, generate
+
+    generate(tmp_path / "scene", SynthConfig(views=8, width=16, height=16, layout="blender"))
+    out = subprocess.run([sys.executable, "-c", TRAIN, str(tmp_path / "scene"), str(tmp_path / "run")],
+                         capture_output=True, text=True, env=_without_openmp_settings())
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-5:] == ["unset", "True", "True", "True", "True"]

@@ -144,23 +144,28 @@ class OccupancyGrid(nn.Module):
         idx, inside = self.cell_index(points)
         return self.binary[idx] & inside
 
-    def cell_centers(self, jitter: bool, cells: "Int[Tensor, 'num_cells'] | None" = None) -> Float[Tensor, "num_cells 3"]:
+    def cell_centers(
+        self, jitter: bool, cells: "Int[Tensor, 'num_cells'] | None" = None, generator: "torch.Generator | None" = None
+    ) -> Float[Tensor, "num_cells 3"]:
         """Centres of all cells (or of ``cells``, by row), or one random point in each when ``jitter``."""
         r = self.cfg.resolution
         if cells is None:
             cells = torch.arange(r**3, device=self.aabb.device)
         ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], dim=-1).float()
-        ijk = ijk + (torch.rand_like(ijk) if jitter else 0.5)
+        ijk = ijk + (torch.rand(ijk.shape, dtype=ijk.dtype, device=ijk.device, generator=generator) if jitter else 0.5)
         return self.aabb[0] + ijk / r * (self.aabb[1] - self.aabb[0])
 
     @torch.no_grad()
-    def update(self, density_fn: Callable[[Tensor], Tensor], step_size: float, full: bool = False, chunk: int = 1 << 19) -> None:
+    def update(
+        self, density_fn: Callable[[Tensor], Tensor], step_size: float, full: bool = False, chunk: int = 1 << 19,
+        generator: "torch.Generator | None" = None,
+    ) -> None:
         """Refresh the running density (one jittered point per cell) and the mask: at every cell when
         ``full``, at the first refresh (no density yet) or when ``update_fraction >= 1``, else at a
-        random fraction of the cells and the occupied ones."""
+        random fraction of the cells and the occupied ones (random draws from ``generator``)."""
         full = full or self.cfg.update_fraction >= 1 or not bool(self.density.any())
-        cells = None if full else self._cells_to_refresh()
-        pts = self.cell_centers(jitter=True, cells=cells)
+        cells = None if full else self._cells_to_refresh(generator)
+        pts = self.cell_centers(jitter=True, cells=cells, generator=generator)
         new = torch.cat([density_fn(p).reshape(-1).float() for p in pts.split(chunk)])
         if cells is None:
             self.density.copy_(torch.maximum(self.density * self.cfg.ema_decay, new))
@@ -170,13 +175,13 @@ class OccupancyGrid(nn.Module):
         thre = min(self.cfg.threshold, float(occ.clamp(min=0).mean()))
         self.binary.copy_(occ > thre)
 
-    def _cells_to_refresh(self) -> Int[Tensor, "num_refreshed"]:
+    def _cells_to_refresh(self, generator: "torch.Generator | None") -> Int[Tensor, "num_refreshed"]:
         """``update_fraction`` of the cells uniformly at random, and the occupied cells (as many at most)."""
         n = max(1, int(self.binary.numel() * self.cfg.update_fraction))
-        uniform = torch.randint(self.binary.numel(), (n,), device=self.binary.device)
+        uniform = torch.randint(self.binary.numel(), (n,), device=self.binary.device, generator=generator)
         occupied = self.binary.nonzero()[:, 0]
         if len(occupied) > n:
-            occupied = occupied[torch.randint(len(occupied), (n,), device=occupied.device)]
+            occupied = occupied[torch.randint(len(occupied), (n,), device=occupied.device, generator=generator)]
         return torch.cat([uniform, occupied]).unique()
 
     def occupied_aabb(self) -> Float[Tensor, "2 3"]:
@@ -194,12 +199,12 @@ class OccupancyGrid(nn.Module):
         cell = (self.aabb[1] - self.aabb[0]) / r
         return torch.stack([self.aabb[0] + torch.stack(lo) * cell, self.aabb[0] + torch.stack(hi) * cell])
 
-    def _limits(self, origins, directions, near, far, step_size, jitter, aabb) -> "_Limits":
+    def _limits(self, origins, directions, near, far, step_size, jitter, aabb, generator=None) -> "_Limits":
         box = self.aabb if aabb is None else aabb
         t0, t1 = ray_aabb_intersect(origins, directions, box)
         t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
         n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
-        offset = torch.rand_like(t0) if jitter else torch.zeros_like(t0)
+        offset = torch.rand(t0.shape, dtype=t0.dtype, device=t0.device, generator=generator) if jitter else torch.zeros_like(t0)
         lim = _Limits(origins, directions, t0, t1, offset, step_size, torch.zeros_like(n_steps), n_steps)
         if self.cfg.skip_factor > 1 and n_steps.numel():
             lim.first, lim.last = self._occupied_span(lim)
@@ -258,6 +263,7 @@ class OccupancyGrid(nn.Module):
         jitter: bool = False,
         aabb: "Float[Tensor, '2 3'] | None" = None,
         chunk_samples: int = 1 << 22,
+        generator: "torch.Generator | None" = None,
     ) -> PackedSamples:
         """Intervals of length ``step_size`` along each ray through occupied cells, packed.
 
@@ -267,8 +273,9 @@ class OccupancyGrid(nn.Module):
             step_size: interval length.
             jitter: shift each ray's intervals by a random fraction of a step (training).
             aabb: march only inside this box (default: the grid's box), e.g. :meth:`occupied_aabb`.
+            generator: the stream of the jitter (default: torch's global one).
         """
-        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb)
+        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator)
         span = int((lim.last - lim.first).max()) + 1 if origins.shape[0] else 0
         k = torch.arange(max(span, 0), device=origins.device)[None, :]
         parts, rows = [], max(1, chunk_samples // max(span, 1))
@@ -308,6 +315,7 @@ class OccupancyGrid(nn.Module):
         jitter: bool = False,
         aabb: "Float[Tensor, '2 3'] | None" = None,
         rounds: "Rounds | None" = None,
+        generator: "torch.Generator | None" = None,
     ) -> "tuple[PackedSamples, Float[Tensor, 'num_samples']]":
         """:meth:`march` then :func:`~nerfpipe.functional.packed.prune_mask`, with early ray termination.
 
@@ -316,7 +324,7 @@ class OccupancyGrid(nn.Module):
         opaque surface are never marched nor evaluated (instant-ngp's compacted rounds).
 
         Args:
-            origins, directions, near, far, step_size, jitter, aabb: as for :meth:`march`.
+            origins, directions, near, far, step_size, jitter, aabb, generator: as for :meth:`march`.
             sigma_fn: density of packed samples (``[num_samples]``), evaluated without gradients.
             min_transmittance: keep samples whose transmittance exceeds this.
             min_alpha: keep only samples more opaque than this (``None``: no alpha test).
@@ -326,7 +334,7 @@ class OccupancyGrid(nn.Module):
             The kept samples, as ``prune_mask`` selects them from :meth:`march` (equal up to the
             order of floating-point sums), and their densities.
         """
-        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb)
+        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator)
         state = _RayState.start(lim)
         rounds = rounds or Rounds()
         kept, n = [], 0

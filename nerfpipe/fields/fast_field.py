@@ -110,10 +110,10 @@ class FastField(nn.Module):
     def rgb(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
         return self.rgb_from_corners(self.corners(points), direction_encoding(directions))
 
-    def density_tv(self, num_cells: int) -> Float[Tensor, ""]:
+    def density_tv(self, num_cells: int, generator: "torch.Generator | None" = None) -> Float[Tensor, ""]:
         """Total variation of the finest density level on ``num_cells`` random vertices."""
         table, res = self.density_grid.tables[-1], self.density_grid.resolutions[-1]
-        ijk = torch.stack([torch.randint(0, r - 1, (num_cells,), device=table.device) for r in res], dim=-1)
+        ijk = torch.stack([torch.randint(0, r - 1, (num_cells,), device=table.device, generator=generator) for r in res], dim=-1)
         row = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]
         v = table[row]
         steps = (res[1] * res[2], res[2], 1)

@@ -14,6 +14,7 @@ import torch
 
 from nerfpipe.encoders import GridEncoder, is_static
 from nerfpipe.image_field.field import ImageFieldConfig
+from nerfpipe.scoped import seeded_init
 from nerfpipe.typing import Float, Tensor, UInt8
 
 
@@ -93,9 +94,8 @@ class _Fitter:
     """One fit's state; :meth:`step` and :meth:`evaluate` are the named points of the loop."""
 
     def __init__(self, image: UInt8[Tensor, "H W 3"], field_cfg: ImageFieldConfig, cfg: TrainConfig) -> None:
-        torch.manual_seed(cfg.seed)
         self.cfg, self.shape = cfg, tuple(image.shape[:2])
-        self.model = field_cfg.setup()
+        self.model, _ = seeded_init(field_cfg.setup, cfg.seed)  # torch's global stream left as it was
         self.coords = pixel_grid(*self.shape)
         self.target = image.reshape(-1, 3).float() / 255.0
         self.target_img = self.target.reshape(*self.shape, 3)

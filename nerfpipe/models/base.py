@@ -70,6 +70,11 @@ class Model(nn.Module):
     sensible defaults.
     """
 
+    generator: "torch.Generator | None" = None
+    """The stream of every random draw in training (sample jitter, occupancy refreshes, regulariser
+    points), on the model's device. The trainer sets it so that a run is reproducible and leaves
+    torch's global stream alone; None: torch's global stream."""
+
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
         """Render rays, compositing over ``background`` (one colour per ray)."""
         raise NotImplementedError

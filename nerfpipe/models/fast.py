@@ -230,13 +230,14 @@ class FastModel(Model):
         densities evaluated in rounds that stop at opaque rays (or all at once, ``early_termination=False``)."""
         args = (rays.origins, rays.directions, self.info.near, self.info.far, self._march_step())
         if not self.cfg.early_termination:
-            return self._prune(self.grid.march(*args, jitter=self.training, aabb=self.march_box), rays)
+            return self._prune(self.grid.march(*args, jitter=self.training, aabb=self.march_box, generator=self.generator), rays)
 
         def sigma_fn(samples: PackedSamples) -> Tensor:
             return self.field.density(samples.points(rays.origins, rays.directions))
 
         return self.grid.march_until_opaque(
-            *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box
+            *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box,
+            generator=self.generator,
         )
 
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
@@ -248,7 +249,7 @@ class FastModel(Model):
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
         t_exit = self._behind_start(flat)
         if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
-            bg = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg).rgb
+            bg = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg, generator=self.generator).rgb
         samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
@@ -298,7 +299,7 @@ class FastModel(Model):
         if "distortion" in outputs.extras:
             losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
         if self.cfg.tv_weight > 0 and self.training:
-            losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16)
+            losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16, self.generator)
         return losses
 
     def _depth_loss(self, extras: dict, target: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
@@ -330,7 +331,7 @@ class FastModel(Model):
         self.active_levels.fill_(self.field.active_levels)
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
-            self.grid.update(self.field.density, self.step_size)
+            self.grid.update(self.field.density, self.step_size, generator=self.generator)
             self.march_box.copy_(self.grid.occupied_aabb())
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
@@ -356,7 +357,7 @@ class FastModel(Model):
         self.field.aabb.copy_(box)
         self.grid.aabb.copy_(box)
         self.grid.density.zero_()
-        self.grid.update(self.field.density, self.step_size)
+        self.grid.update(self.field.density, self.step_size, generator=self.generator)
         self.march_box.copy_(self.grid.occupied_aabb())
 
     @staticmethod

@@ -54,12 +54,12 @@ class VanillaModel(Model):
 
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
         near = torch.full(rays.shape, self.near, dtype=rays.origins.dtype, device=rays.origins.device)
-        edges = stratified_samples(near, torch.full_like(near, self.far), self.cfg.num_samples, perturb=self.training)
+        edges = stratified_samples(near, torch.full_like(near, self.far), self.cfg.num_samples, perturb=self.training, generator=self.generator)
         (rgb, depth, acc), weights = self._render(self.coarse, rays, edges, background)
         n = self.cfg.num_samples
         if self.fine is None:
             return RenderOutputs(rgb=rgb, depth=depth, acc=acc, num_samples=n * rays.cam_idx.numel())
-        extra = pdf_samples(edges, weights, self.cfg.num_importance, perturb=self.training)
+        extra = pdf_samples(edges, weights, self.cfg.num_importance, perturb=self.training, generator=self.generator)
         edges_f = merge_edges(edges, extra)
         (rgb_f, depth_f, acc_f), _ = self._render(self.fine, rays, edges_f, background)
         n += edges_f.shape[-1] - 1
