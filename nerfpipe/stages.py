@@ -21,6 +21,10 @@ a user error (:class:`NerfpipeError`) before any stage finished removes the fold
 half-way leaves neither a marker nor a half-written artifact (markers are written after the
 artifacts, both by ``os.replace``); the temporaries of a killed run are swept by the next one.
 
+One run at a time: :meth:`Pipeline.run` holds the folder's lock (:func:`nerfpipe.runlock.run_lock`)
+from before it sweeps temporaries until the last stage ends, so a second run into the same folder
+refuses instead of deleting the first one's files; a lock left by a killed run is taken over.
+
 Glossary:
     artifact  a named output; ``produces`` lists the ones a stage must leave on disk
     marker    ``stages/<name>.done.json``
@@ -43,6 +47,7 @@ from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, require_all
 from nerfpipe.paths import check_output_folder
 from nerfpipe.registry import STAGE_GROUP, discover
+from nerfpipe.runlock import run_lock
 
 MARKER_DIR = "stages"
 RUN_RECORD = "run.json"
@@ -348,17 +353,17 @@ class Pipeline:
         require_all(tuple(d for s in self.specs for d in s.dependencies))
         self.validate(ctx)
         created = not ctx.run_dir.exists()
-        ctx.run_dir.mkdir(parents=True, exist_ok=True)
-        if (ctx.run_dir / RUN_RECORD).is_file():  # only a folder nerfpipe ran in holds temporaries of ours
-            sweep_temporaries(ctx.run_dir)
-        t0 = time.monotonic()
-        try:
-            _check_run_record(ctx, self.names, resume)
-            records = self._run_chain(ctx, resume, on_stage)
-        except NerfpipeError:
-            if created and not any((read_marker(ctx, n) or {}).get("status") == "ran" for n in self.names):
-                shutil.rmtree(ctx.run_dir, ignore_errors=True)  # a refused input, no stage's work: leave no folder behind
-            raise
+        with run_lock(ctx.run_dir):  # makes the folder; taken before the sweep: the temporaries of a live run are not stale
+            if (ctx.run_dir / RUN_RECORD).is_file():  # only a folder nerfpipe ran in holds temporaries of ours
+                sweep_temporaries(ctx.run_dir)
+            t0 = time.monotonic()
+            try:
+                _check_run_record(ctx, self.names, resume)
+                records = self._run_chain(ctx, resume, on_stage)
+            except NerfpipeError:
+                if created and not any((read_marker(ctx, n) or {}).get("status") == "ran" for n in self.names):
+                    shutil.rmtree(ctx.run_dir, ignore_errors=True)  # a refused input, no stage's work: leave no folder behind
+                raise
         names = [a for s in self.specs for a in s.produces + s.provides]
         return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
 

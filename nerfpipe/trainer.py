@@ -29,6 +29,7 @@ from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
+from nerfpipe.runlock import run_lock
 from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.scene import SceneData, check_images
 from nerfpipe.scoped import continued_generator, seeded_init, torch_threads
@@ -249,8 +250,11 @@ class Trainer:
         return self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
 
     def train(self) -> dict:
-        """Train until ``iters`` or ``time_budget``, then validate and write every output."""
-        with torch_threads(self.cfg.num_threads):
+        """Train until ``iters`` or ``time_budget``, then validate and write every output.
+
+        Holds the run folder's lock (:func:`nerfpipe.runlock.run_lock`): a second training into the
+        same folder refuses while this one runs."""
+        with run_lock(self.out), torch_threads(self.cfg.num_threads):
             return self._train()
 
     def _train(self) -> dict:

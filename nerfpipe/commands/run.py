@@ -152,6 +152,7 @@ def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]
         run_dir: a run folder made by ``nerfpipe run``.
     """
     from nerfpipe.errors import NerfpipeError
+    from nerfpipe.runlock import run_lock
     from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, marker_path, read_marker, run_stage
 
     console = _console()
@@ -167,7 +168,8 @@ def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]
     ctx = pipe.context(run_dir, source)
     done = read_marker(ctx, name)
     config = make_config(pipe.specs[0], done.get("config"), marker_path(ctx, name)) if done else pipe.configs[name]
-    rec = run_stage(pipe.specs[0], config, ctx)
+    with run_lock(run_dir):  # not while a run or another stage works in this folder
+        rec = run_stage(pipe.specs[0], config, ctx)
     console.print(f"stage {rec.name}: {rec.status} in {rec.seconds:.1f} s -> {', '.join(rec.artifacts) or 'nothing'}")
     return 0
 
