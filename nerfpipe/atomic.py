@@ -4,18 +4,26 @@ Every output and checkpoint of nerfpipe goes through :func:`atomic_path`: the co
 to a temporary next to the target (same folder, so the rename is atomic) and moved into place
 with ``os.replace`` only when complete. A killed writer leaves only a ``.tmp-*`` temporary,
 which :func:`sweep_temporaries` removes on the next run.
+
+A folder cannot replace a non-empty folder in one rename, so the old one is first moved aside
+(``.tmp-old-*``) and then the new one moved in. A writer killed between the two renames leaves the
+target missing and its previous content aside: the sweep puts that back instead of removing it, so
+a kill -9 at any instant leaves the old or the new content in place, never neither.
 """
 
 import contextlib
 import dataclasses
 import json
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 TMP_PREFIX = ".tmp-"
+_ASIDE = re.compile(re.escape(TMP_PREFIX) + r"old-[0-9a-f]{8}-(?P<name>.+)")
+"""A target moved aside by :func:`_replace` (its name after the prefix)."""
 
 
 @contextlib.contextmanager
@@ -65,7 +73,13 @@ def write_bytes(target: "str | Path", data: bytes) -> Path:
 
 
 def sweep_temporaries(run_dir: "str | Path") -> None:
-    """Remove the temporaries of writes that were killed before they finished (symlinks not followed)."""
+    """Remove the temporaries of writes that were killed before they finished (symlinks not followed);
+    a folder moved aside whose replacement never arrived is put back first (see the module docstring)."""
+    for p in sorted(Path(run_dir).rglob(f"{TMP_PREFIX}old-*"), key=lambda p: len(p.parts)):
+        aside = _ASIDE.fullmatch(p.name)
+        target = p.with_name(aside["name"]) if aside else None
+        if target is not None and not target.exists() and not target.is_symlink():
+            os.replace(p, target)
     found = Path(run_dir).rglob(f"{TMP_PREFIX}*")
     for p in sorted(set(found), key=lambda p: -len(p.parts)):
         _remove(p)

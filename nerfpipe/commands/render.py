@@ -32,6 +32,7 @@ def render(
     import torch
 
     from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES, write_sequence
+    from nerfpipe.atomic import write_json
     from nerfpipe.devices import check_device
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.orbit import path_cameras
@@ -55,7 +56,7 @@ def render(
     with torch.no_grad():
         views = render_cameras(model, cams.to(device), chunk, background_colors(bg, 1)[0])
     info = write_sequence(views, Path(run_dir) / "renders", path, depth=depth)
-    (Path(run_dir) / "renders" / f"{path}.json").write_text(json.dumps(info, indent=2) + "\n")
+    write_json(Path(run_dir) / "renders" / f"{path}.json", info)
     print(json.dumps(info, indent=2))
     return 0
 
