@@ -199,7 +199,9 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
         for group, lr in zip(self.optimizer.param_groups, initial):
             group["initial_lr"] = lr
-        self.model.generator.set_state(state["torch_rng"])
+        stream = state["torch_rng"]
+        if stream.numel() == self.model.generator.get_state().numel():  # else saved on another device type:
+            self.model.generator.set_state(stream)  # that stream cannot go on here, this run's own does
         self.generator.set_state(state["sampler_rng"])
         self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
 
