@@ -56,7 +56,10 @@ def run_lock(run_dir: "str | Path") -> Iterator[Path]:
         False
     """
     path = Path(run_dir) / LOCK_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file in the way, no permission
+        raise NerfpipeError(f"cannot create the run folder ({exc.strerror or exc})", path.parent) from exc
     fd = _acquire(path) if fcntl is not None else None
     try:
         yield path

@@ -119,3 +119,10 @@ def test_the_stage_command_takes_the_lock(tmp_path, capsys):
     with run_lock(tmp_path):
         assert main(["stage", "load", str(tmp_path)]) == 2
     assert "in use" in capsys.readouterr().err
+
+
+def test_a_run_folder_under_a_file_is_one_line(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(NerfpipeError, match="cannot create the run folder"):
+        with run_lock(tmp_path / "file" / "run"):
+            pass
