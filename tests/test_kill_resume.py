@@ -79,12 +79,15 @@ def uninterrupted(scene, tmp_path_factory) -> dict:
 def kill_at(point: str, scene: Path, run_dir: Path, tmp_path: Path) -> None:
     marker = tmp_path / f"paused-{point}"
     cmd = [sys.executable, "-c", KILLED, point, str(scene), str(run_dir), str(marker), json.dumps(CONFIGS)]
-    proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    log = tmp_path / f"child-{point}.log"  # a file, not a pipe: a child never blocks on a full pipe
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=out, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 120
     while not marker.exists():
         if proc.poll() is not None or time.monotonic() > deadline:
             proc.kill()
-            pytest.fail(f"the child ended before reaching {point}: {proc.communicate()[1].decode()[-2000:]}")
+            proc.wait()
+            pytest.fail(f"the child ended before reaching {point}: {log.read_text(errors='replace')[-2000:]}")
         time.sleep(0.02)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
