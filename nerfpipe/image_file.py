@@ -87,7 +87,7 @@ def read_image_uint8(path: "str | Path") -> np.ndarray:
             im = im.convert("RGB")
         elif im.mode == "PA":
             im = im.convert("RGBA")
-        img = np.asarray(im)
+        img = np.array(im)  # writable (np.asarray of a Pillow image is read-only; torch.from_numpy warns on it)
     if im.mode == "I" and img.size and 0 <= img.min() and img.max() <= 65535:  # 16-bit grey that Pillow widened
         img = img.astype(np.uint16)
     return image_uint8(img, path)
