@@ -124,9 +124,11 @@ class FastConfig:
     """Weight of the sparse-point depth loss on rays through COLMAP track observations (the trainer's
     ``track_rays``): no opacity in front of an observed point, and the ray stops near it when the point
     lies in the object region (0 = off)."""
-    depth_tolerance: float = 0.01
+    depth_tolerance: float = 0.006
     """Half-width of the window around an observed point where its ray may stop, as a fraction of the
-    object region's diagonal."""
+    object region's diagonal. Below the free-space figure's 1% of the points' extent: colmap_mouse after 800
+    steps, TSDF mesh of 16 views, 0.01 / 0.006 gave free-space violation 0.085 / 0.021, points near the mesh
+    0.963 / 0.956 and val PSNR 24.29 / 24.25 dB (with the 10% region margin of before: 0.045 / 0.016)."""
     distortion_weight: float = 0.0
     """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
     tv_weight: float = 0.0
