@@ -60,6 +60,9 @@ def main(argv: "list[str] | None" = None) -> int:
     except KeyboardInterrupt:
         print("nerfpipe: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (``nerfpipe info --json | head``): stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit-time flush must not fail again
+        return 141  # 128 + SIGPIPE, what a shell reports for a command the pipe ended
     return int(result) if isinstance(result, int) else 0
 
 

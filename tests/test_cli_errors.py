@@ -91,6 +91,16 @@ def test_subprocess(tmp_path):
     assert run.stderr.strip().count("\n") == 0 and str(culprit) in run.stderr and "FULL_OPENCV" in run.stderr
 
 
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    """``nerfpipe info DATA --json | head -0``: the reader is gone before the output; no traceback."""
+    path = make_scene(tmp_path, "PINHOLE", frames=3, points=20)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.Popen([sys.executable, "-m", "nerfpipe", "info", str(path), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    proc.stdout.close()  # before the command has printed anything
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 141 and "Traceback" not in err and "BrokenPipe" not in err
+
+
 def test_clean_errors_keep_their_cause_for_debug(tmp_path):
     """One line for the user, but ``--debug`` can still show what the library raised (``from exc``)."""
     from nerfpipe.errors import NerfpipeError
