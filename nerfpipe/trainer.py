@@ -189,12 +189,16 @@ class Trainer:
         state = load_checkpoint(path)
         load_model_state(self.model, state["model"], path, self.model_name)
         try:
-            self.load_state(state)
+            self._load_training_state(state)
         except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise NerfpipeError(f"checkpoint does not fit this training ({' '.join(str(exc).split())[:300]})", path) from exc
 
     def load_state(self, state: dict) -> None:
         self.model.load_state_dict(state["model"])
+        self._load_training_state(state)
+
+    def _load_training_state(self, state: dict) -> None:
+        """Everything of a checkpoint but the model's tensors: optimiser, random streams, step and history."""
         initial = [group["initial_lr"] for group in self.optimizer.param_groups]
         self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
         for group, lr in zip(self.optimizer.param_groups, initial):

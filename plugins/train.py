@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from nerfpipe import checkpoint, evaluation
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.errors import NerfpipeError, refuse_unless
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
 
@@ -47,8 +47,7 @@ class TrainStageConfig:
     def __post_init__(self) -> None:
         """The model name and options are checked when the pipeline is built, not after the stages before this one ran."""
         model_config(self.model, self.model_options)
-        if not 0 < self.budget_share <= 1:
-            raise NerfpipeError(f"--budget-share must be in (0, 1], got {self.budget_share}")
+        refuse_unless([("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share)])
 
 
 def model_config(name: str, options: dict):

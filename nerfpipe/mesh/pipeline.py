@@ -31,6 +31,7 @@ from nerfpipe.mesh.level import choose_level
 from nerfpipe.mesh.metrics import robust_diagonal
 from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
+from nerfpipe.normalize import OBJECT_PAD
 from nerfpipe.scene import Similarity
 from nerfpipe.typing import Float, Tensor
 
@@ -76,7 +77,7 @@ class MeshConfig:
     """Mesh only the object region of the input's sparse points (:func:`nerfpipe.normalize.object_region`: their
     2-98% extent per axis near the cameras' focus, grown by ``crop_margin``), intersected with the occupied box;
     inputs without sparse points keep the occupied box."""
-    crop_margin: float = 0.25
+    crop_margin: float = OBJECT_PAD
     """Growth of the sparse points' extent, as a fraction of it: the object region's own margin (0.05 and 0.1
     cut colmap_mouse's texture-less end off; the table it stands on enters the box and is found as the
     support plane)."""

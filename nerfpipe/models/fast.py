@@ -143,9 +143,7 @@ class FastConfig:
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""
-        name = auto_preset(scene_info) if self.preset == "auto" else self.preset
-        if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; choose from auto, {', '.join(PRESETS)}")
+        name = auto_preset(scene_info) if self.preset == "auto" else self.preset  # a known name: __post_init__
         out = dict(PRESETS[name], preset=name)
         for key in ("levels", "feature_channels", "hidden"):
             if getattr(self, key) is not None:
