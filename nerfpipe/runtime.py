@@ -110,10 +110,15 @@ def busy_cpus(seconds: float = 0.05) -> float:
         idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
         return sum(fields), idle
 
+    def load_average() -> float:
+        return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+
     first = ticks()
     if first is None:
-        return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+        return load_average()
     time.sleep(seconds)
     second = ticks()
-    total, idle = second[0] - first[0], second[1] - first[1]
-    return (os.cpu_count() or 1) * (total - idle) / max(total, 1)
+    total, idle = (second[0] - first[0], second[1] - first[1]) if second is not None else (0, 0)
+    if total <= 0:  # no tick counted in the window (a container's /proc/stat can lag under load): no measurement
+        return load_average()
+    return (os.cpu_count() or 1) * (total - idle) / total
