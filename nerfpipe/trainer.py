@@ -33,6 +33,7 @@ from nerfpipe.runlock import run_lock
 from nerfpipe.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.scene import SceneData, check_images
 from nerfpipe.scoped import continued_generator, seeded_init, torch_threads
+from nerfpipe.typing import Float, Tensor
 
 
 MAX_RAYS_PER_STEP = 1 << 22
@@ -119,7 +120,17 @@ def scene_info(scene: SceneData) -> SceneInfo:
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread)
+                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, pixel_footprint=pixel_footprint(cams, scene.aabb))
+
+
+def pixel_footprint(cams: "Cameras", aabb: Float[Tensor, "2 3"]) -> float:
+    """Median over cameras of (distance to the box centre) / (focal length in pixels): one pixel's width there."""
+    if not len(cams):
+        return 0.0
+    centre = aabb.double().mean(0)
+    dist = (cams.world_from_cam[..., :3, 3].double().reshape(-1, 3) - centre).norm(dim=-1)
+    focal = (0.5 * (cams.fx + cams.fy)).double().reshape(-1)
+    return float((dist / focal).median())
 
 
 def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:

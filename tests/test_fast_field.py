@@ -8,9 +8,9 @@ import torch.nn.functional as F
 
 from data_adapters import load
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
-from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear, trilinear_corners
+from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
-from nerfpipe.models.fast import FastConfig, auto_preset
+from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_capacity
 from nerfpipe.rays import RayBundle
 from nerfpipe.trainer import Trainer, TrainerConfig
 from reference import trilinear_loop
@@ -65,10 +65,66 @@ def info(**kw):
 TINY = dict(levels=(8, 16), feature_channels=2, hidden=16, occupancy=OccupancyGridConfig(resolution=16, warmup_steps=2, update_every=2))
 
 
+def test_hashed_corners_match_the_one_vertex_reference():
+    res, rows = (40, 33, 50), 256  # 66,000 vertices in 256 rows
+    x = points(40, torch.float64)
+    idx, w = trilinear_corners(x, res, rows)
+    pos = x.clamp(0, 1) * (torch.tensor(res, dtype=x.dtype) - 1)
+    lo = torch.minimum(pos.floor(), torch.tensor(res, dtype=x.dtype) - 2).long()
+    corners = [(di, dj, dk) for di in (0, 1) for dj in (0, 1) for dk in (0, 1)]
+    ref = [[hashed_row_reference(int(i) + di, int(j) + dj, int(k) + dk, rows) for di, dj, dk in corners] for i, j, k in lo.tolist()]
+    assert idx.tolist() == ref and int(idx.max()) < rows
+    torch.testing.assert_close(w, trilinear_corners(x, res)[1])  # the weights do not depend on the storage
+    table = torch.randn(rows, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(grid_gather, (table, idx[:6], w[:6].clone().requires_grad_()))
+
+
+def test_levels_hash_only_above_the_row_budget():
+    enc = DenseGridEncoding([(4, 4, 4), (8, 8, 8), (16, 16, 16)], channels=3, max_rows=512)
+    assert enc.hash_rows == [None, None, 512] and [t.shape[0] for t in enc.tables] == [64, 512, 512]
+    assert enc(torch.rand(5, 3)).shape == (5, 9)
+    with pytest.raises(ValueError, match="power of two"):
+        DenseGridEncoding([(4, 4, 4)], channels=1, max_rows=100)
+
+
+def test_auto_capacity_resolves_a_pixel_and_bounds_memory():
+    lego200 = info(num_images=100, pixels_per_image=200 * 200, pixel_footprint=2.0 / 200)
+    cap = auto_capacity(lego200)  # box side 2: a pixel is 1/200 of it
+    assert cap["levels"][0] == 32 and cap["levels"][-1] == 200 and len(cap["levels"]) <= MAX_LEVELS
+    assert list(cap["levels"]) == sorted(cap["levels"]) and cap["log2_hashmap_size"] == 17
+    model = FastConfig().setup(lego200)
+    rows = sum(t.shape[0] for t in model.field.density_grid.tables)
+    assert rows <= 32**3 + 3 * 2**17 and model.stats()["model_mb"] < 9  # dense, it would be 200^3 vertices
+    assert model.stats()["finest_voxel"] == pytest.approx(2.0 / 199)
+    big = auto_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
+    assert big["levels"][-1] == MAX_FINEST and len(big["levels"]) == MAX_LEVELS and big["log2_hashmap_size"] == 19
+    unknown = auto_capacity(info(num_images=10, pixels_per_image=300 * 300))  # no cameras: the image's side
+    assert unknown["levels"][-1] == 300 and unknown["log2_hashmap_size"] == 15
+
+
+def test_tighten_keeps_hashed_levels_and_checkpoints_round_trip():
+    cfg = FastConfig(levels=(8, 40), feature_channels=2, hidden=8, log2_hashmap_size=10, coarse_to_fine_every=0,
+                     occupancy=OccupancyGridConfig(resolution=16))
+    model = cfg.setup(info())
+    assert model.field.density_grid.hash_rows == [None, 1024]
+    with torch.no_grad():
+        model.field.density_grid.tables[1].normal_()
+        model.grid.binary.zero_()
+        model.grid.binary.view(16, 16, 16)[4:12, 6:10, 2:14] = True
+    probe = torch.rand(100, 3) * 0.5 - 0.25
+    before = model.field.density(probe)
+    step = model.step_size
+    model.grid.update = lambda *a, **k: None
+    model.tighten()
+    assert (model.field.aabb[1] - model.field.aabb[0] < 2.0).all()
+    assert model.field.density_grid.resolutions[1] == (40, 40, 40) and model.step_size == pytest.approx(step)
+    torch.testing.assert_close(model.field.density(probe), before, rtol=1e-5, atol=1e-5)  # level 0 is constant
+    fresh = cfg.setup(info())
+    fresh.load_state_dict(model.state_dict())
+    torch.testing.assert_close(fresh.field.density(probe), before, rtol=1e-5, atol=1e-5)
+
+
 def test_capacity_follows_the_scene():
-    assert auto_preset(info(num_images=100, pixels_per_image=200 * 200)) == "small"
-    assert auto_preset(info(num_images=100, pixels_per_image=400 * 400)) == "medium"
-    assert auto_preset(info(num_images=300, pixels_per_image=800 * 800)) == "large"
     model = FastConfig(preset="small", levels=(8, 12)).setup(info())
     assert model.capacity["preset"] == "small" and [r[0] for r in model.field.density_grid.resolutions] == [8, 12]
     with pytest.raises(ValueError, match="unknown preset"):

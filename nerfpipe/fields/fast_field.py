@@ -15,7 +15,7 @@ import math
 import torch
 from torch import nn
 
-from nerfpipe.fields.grid import DenseGridEncoding, trilinear_corners, grid_gather
+from nerfpipe.fields.grid import DenseGridEncoding, grid_gather
 from nerfpipe.typing import Float, Tensor
 
 
@@ -55,6 +55,9 @@ class FastField(nn.Module):
         feature_channels: colour features per vertex and level.
         hidden: width of the colour MLP.
         init_density: density everywhere at the start (sets the activation shift).
+        max_rows: levels with more vertices are hashed into tables of this many rows (None: all dense).
+            Hashed levels live on the lattice of the box the field was built in (``lattice``), which
+            tightening the box leaves alone: only the dense levels are resampled to the new box.
     """
 
     def __init__(
@@ -64,11 +67,13 @@ class FastField(nn.Module):
         feature_channels: int = 4,
         hidden: int = 64,
         init_density: float = 0.1,
+        max_rows: "int | None" = None,
     ) -> None:
         super().__init__()
         self.register_buffer("aabb", aabb.detach().clone().float())
-        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
-        self.feature_grid = DenseGridEncoding(resolutions, feature_channels)
+        self.register_buffer("lattice", aabb.detach().clone().float())
+        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0, max_rows=max_rows)
+        self.feature_grid = DenseGridEncoding(resolutions, feature_channels, max_rows=max_rows)
         self.shift = math.log(math.expm1(init_density))
         self.active_levels = len(resolutions)
         """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
@@ -83,10 +88,26 @@ class FastField(nn.Module):
     def normalize(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
         return (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
 
+    def hashed(self, level: int) -> bool:
+        return self.density_grid.hash_rows[level] is not None
+
     def corners(self, points: Float[Tensor, "num_points 3"]) -> list:
-        """Trilinear corners of every level (shared by the density and feature reads)."""
+        """Trilinear corners of every active level (shared by the density and feature reads)."""
+        grid = self.density_grid
         x01 = self.normalize(points)
-        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions[: self.active_levels]]
+        x_lat = None
+        out = []
+        for level in range(self.active_levels):
+            if self.hashed(level) and x_lat is None:
+                x_lat = (points - self.lattice[0]) / (self.lattice[1] - self.lattice[0])
+            out.append(grid.corners(level, x_lat if self.hashed(level) else x01))
+        return out
+
+    def voxel_size(self, level: int) -> float:
+        """Smallest vertex spacing of a level, in scene units."""
+        box = self.lattice if self.hashed(level) else self.aabb
+        res = torch.tensor(self.density_grid.resolutions[level], dtype=box.dtype, device=box.device)
+        return float(((box[1] - box[0]) / (res - 1)).min())
 
     def density_from_corners(self, corners: list) -> Float[Tensor, "num_points"]:
         raw = None
@@ -111,8 +132,9 @@ class FastField(nn.Module):
         return self.rgb_from_corners(self.corners(points), direction_encoding(directions))
 
     def density_tv(self, num_cells: int, generator: "torch.Generator | None" = None) -> Float[Tensor, ""]:
-        """Total variation of the finest density level on ``num_cells`` random vertices."""
-        table, res = self.density_grid.tables[-1], self.density_grid.resolutions[-1]
+        """Total variation of the finest dense density level on ``num_cells`` random vertices."""
+        level = max(i for i in range(len(self.density_grid.tables)) if not self.hashed(i))
+        table, res = self.density_grid.tables[level], self.density_grid.resolutions[level]
         ijk = torch.stack([torch.randint(0, r - 1, (num_cells,), device=table.device, generator=generator) for r in res], dim=-1)
         row = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]
         v = table[row]

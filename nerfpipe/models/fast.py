@@ -1,6 +1,8 @@
-"""The fast default model: dense multiresolution grids, an occupancy grid and packed rendering.
+"""The fast default model: multiresolution grids, an occupancy grid and packed rendering.
 
-Only what the scene needs is modelled and evaluated: the field lives in the scene box (tightened
+Only what the scene needs is modelled and evaluated: the field's finest level resolves one training
+pixel and levels too fine to store densely are hashed into tables sized by the scene's pixel count
+(memory follows the evidence, not the box's volume); the field lives in the scene box (tightened
 to the occupied cells once training has found them), rays are marched only through occupied
 cells with a step tied to the grid resolution (a coarser, dilated copy of the occupancy first bounds
 the span of each ray worth marching; the sampling starts at one voxel and halves later), a cheap
@@ -29,23 +31,44 @@ from nerfpipe.rays import RayBundle
 from nerfpipe.typing import Float, Tensor
 
 PRESETS: "dict[str, dict]" = {
-    "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64),
-    "medium": dict(levels=(32, 64, 128, 192), feature_channels=4, hidden=64),
-    "large": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64),
+    "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64, log2_hashmap_size=None),
+    "medium": dict(levels=(32, 64, 128, 192), feature_channels=4, hidden=64, log2_hashmap_size=None),
+    "large": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64, log2_hashmap_size=None),
 }
-"""Capacity presets: vertices per axis of each grid level along the box's longest side."""
+"""Dense capacity presets (every vertex stored): vertices per axis of each grid level along the box's
+longest side. ``auto`` (the default) sizes a hashed field from the scene instead: :func:`auto_capacity`."""
 
 
 APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
+MAX_LEVELS = 5
+"""Grid levels of an ``auto`` field at most (each level costs a gather per sample)."""
 
-def auto_preset(info: SceneInfo) -> str:
-    """Capacity from the scene: more pixels of evidence afford finer grids."""
-    pixels = info.num_images * info.pixels_per_image
-    if pixels < 6e6:
-        return "small"
-    return "medium" if pixels < 24e6 else "large"
+MAX_FINEST = 512
+"""Vertices along the box of an ``auto`` field's finest level at most: samples are spaced by half its voxel,
+so a finer level multiplies the samples per ray (colmap_mouse's 1920x1440 photographs would ask for 1024)."""
+
+
+def auto_capacity(info: SceneInfo) -> dict:
+    """Capacity from the scene: the finest level resolves one training pixel at the box centre, the
+    levels double from 32 vertices (at most :data:`MAX_LEVELS`, spaced evenly in log scale), and levels
+    with more vertices than the scene's pixels can inform (a 32nd of them, as a power of two between
+    2^15 and 2^19) are hashed into tables of that many rows: memory follows the evidence and the
+    occupied space (hash collisions fall mostly on empty cells, which no ray samples), not the
+    box's volume."""
+    extent = float((info.aabb[1] - info.aabb[0]).max())
+    if info.pixel_footprint > 0:
+        needed = extent / info.pixel_footprint
+    else:  # no cameras known: as many vertices as the image has pixels along its side
+        needed = math.sqrt(max(info.pixels_per_image, 1))
+    finest = int(min(max(needed, 128), MAX_FINEST))
+    count = min(MAX_LEVELS, 1 + math.ceil(math.log2(finest / 32) - 1e-9))
+    growth = (finest / 32) ** (1 / (count - 1))
+    levels = tuple(int(round(32 * growth**i)) for i in range(count))
+    pixels = max(info.num_images * info.pixels_per_image, 1)
+    log2_rows = int(min(19, max(15, round(math.log2(pixels / 32)))))
+    return dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
 
 
 @dataclass
@@ -53,9 +76,13 @@ class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
 
     preset: str = "auto"
-    """Capacity: ``auto`` (from image count and resolution), ``small``, ``medium`` or ``large``."""
+    """Capacity: ``auto`` (a hashed field sized from the cameras' pixel footprint and the pixel count:
+    :func:`auto_capacity`), or a dense field: ``small``, ``medium`` or ``large``."""
     levels: "tuple[int, ...] | None" = None
     """Override the preset's grid levels (vertices along the box's longest side)."""
+    log2_hashmap_size: "int | None" = None
+    """Override the preset's hashing: levels with more than 2^this vertices are hashed into 2^this rows
+    (0: every level dense)."""
     feature_channels: "int | None" = None
     """Override the preset's colour features per vertex and level."""
     hidden: "int | None" = None
@@ -143,16 +170,18 @@ class FastConfig:
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""
-        name = auto_preset(scene_info) if self.preset == "auto" else self.preset  # a known name: __post_init__
-        out = dict(PRESETS[name], preset=name)
-        for key in ("levels", "feature_channels", "hidden"):
+        base = auto_capacity(scene_info) if self.preset == "auto" else PRESETS[self.preset]  # a known name: __post_init__
+        out = dict(base, preset=self.preset)
+        for key in ("levels", "feature_channels", "hidden", "log2_hashmap_size"):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
+        if not out["log2_hashmap_size"]:
+            out["log2_hashmap_size"] = None
         return out
 
 
 class FastModel(Model):
-    """Grid field + occupancy grid + packed volume rendering."""
+    """Grid field (dense coarse levels, hashed fine ones) + occupancy grid + packed volume rendering."""
 
     def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
         super().__init__()
@@ -161,7 +190,11 @@ class FastModel(Model):
         aabb = info.aabb.detach().float()
         self._step = 0
         self.register_buffer("trained_steps", torch.tensor(0))
-        self.field = FastField(aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"])
+        log2_rows = self.capacity["log2_hashmap_size"]
+        self.field = FastField(
+            aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"],
+            max_rows=None if log2_rows is None else 2**log2_rows,
+        )
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
         n_levels = len(self.capacity["levels"])
         self.field.active_levels = min(2, n_levels) if cfg.coarse_to_fine_every > 0 else n_levels
@@ -192,9 +225,7 @@ class FastModel(Model):
 
     @property
     def step_size(self) -> float:
-        extent = self.field.aabb[1] - self.field.aabb[0]
-        res = torch.tensor(self.field.density_grid.resolutions[self.field.active_levels - 1], dtype=extent.dtype, device=extent.device)
-        return float((extent / (res - 1)).min()) * self._step_ratio()
+        return self.field.voxel_size(self.field.active_levels - 1) * self._step_ratio()
 
     def _step_ratio(self) -> float:
         fine = not self.cfg.fine_steps_from or self._step >= self.cfg.fine_steps_from
@@ -352,8 +383,9 @@ class FastModel(Model):
         resolutions = self._resolutions(box)
         for grid in (self.field.density_grid, self.field.feature_grid):
             for i, (table, res) in enumerate(zip(grid.tables, resolutions)):
-                table.data = self._resample(table.data, grid.resolutions[i], old, box, res)
-            grid.resolutions = resolutions
+                if grid.hash_rows[i] is None:  # hashed levels keep their lattice (it spans the first box)
+                    table.data = self._resample(table.data, grid.resolutions[i], old, box, res)
+                    grid.resolutions[i] = res
         self.field.aabb.copy_(box)
         self.grid.aabb.copy_(box)
         self.grid.density.zero_()
@@ -392,6 +424,8 @@ class FastModel(Model):
             occupied_fraction=self.grid.occupied_fraction,
             samples_per_ray=float(self._samples_per_ray),
             finest_resolution=float(max(self.field.density_grid.resolutions[-1])),
+            finest_voxel=self.field.voxel_size(len(self.field.density_grid.resolutions) - 1),
+            hashed_levels=float(sum(h is not None for h in self.field.density_grid.hash_rows)),
         )
         return out
 
@@ -411,16 +445,18 @@ class FastModel(Model):
             for name in ("density_grid", "feature_grid"):
                 grid = getattr(self.field, name)
                 for i, table in enumerate(grid.tables):
+                    if grid.hash_rows[i] is not None:
+                        continue  # hashed: the lattice of the first box, never resampled
                     src = state_dict.get(f"{prefix}field.{name}.tables.{i}")
                     if src is not None and src.shape != table.shape:
                         table.data = torch.empty_like(src)
-                grid.resolutions = resolutions
+                    grid.resolutions[i] = resolutions[i]
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
         self.field.active_levels = int(self.active_levels)
 
 
 SPEC = ModelSpec(
     name="fast",
-    description="Dense multiresolution grids + occupancy grid + packed rendering: fast on CPU.",
+    description="Multiresolution grids (hashed where fine) + occupancy grid + packed rendering: fast on CPU.",
     config=FastConfig,
 )

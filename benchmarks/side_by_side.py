@@ -1,0 +1,105 @@
+"""Several ``fast`` model variants trained side by side in one process, steps interleaved, so that the
+machine's load (which varies 2-3x from hour to hour on shared machines) weighs on each alike: seconds
+per step as ratios, val PSNR at equal steps (deterministic on CPU), model MB and the finest voxel.
+
+Run: ``python -m benchmarks.side_by_side LEGO --variants "dense:preset='small'" "compact:" --marks 300 3000``.
+A variant is ``NAME:OPTIONS`` with options ``KEY=VALUE`` separated by spaces (as ``benchmarks.steps``;
+``preset=...`` sets the capacity preset, default ``auto``). Prints one JSON line per variant and mark,
+and appends them to ``--log`` when given.
+"""
+
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe import runtime
+
+    runtime.apply()
+
+import ast
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+from benchmarks.steps import model_config
+
+
+@dataclass
+class SideBySideConfig:
+    data: tyro.conf.Positional[Path]
+    """Dataset (any supported format)."""
+    variants: "tuple[str, ...]" = ("dense:preset='small'", "compact:")
+    """``NAME:OPTIONS`` per variant (options ``KEY=VALUE`` separated by spaces)."""
+    marks: "tuple[int, ...]" = (300,)
+    """Steps at which to validate."""
+    chunk: int = 25
+    """Steps one variant trains before the next takes its turn."""
+    eval_views: int = 10
+    eval_max_size: "int | None" = None
+    """Longer side of validation renders at most (None: full resolution)."""
+    track_rays: int = 512
+    threads: int = 2
+    rays_per_step: int = 4096
+    seed: int = 0
+    log: "Path | None" = None
+    """Append the JSON lines to this file."""
+
+
+def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...]]":
+    """``"name:preset='small' levels=(8,16)"`` -> ``("name", "small", ("levels=(8,16)",))``."""
+    name, _, rest = text.partition(":")
+    options, preset = [], "auto"
+    for item in rest.split():
+        key, _, value = item.partition("=")
+        if key == "preset":
+            preset = ast.literal_eval(value)
+        else:
+            options.append(item)
+    return name, preset, tuple(options)
+
+
+def main(cfg: SideBySideConfig) -> "list[dict]":
+    from data_adapters import load
+
+    from nerfpipe import evaluation
+    from nerfpipe.trainer import Trainer, TrainerConfig
+
+    torch.set_num_threads(cfg.threads)
+    scene = load(cfg.data)
+    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
+                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = []
+        for i, text in enumerate(cfg.variants):
+            name, preset, options = parse_variant(text)
+            trainer = Trainer(tcfg, scene, "fast", model_config(preset, options), Path(tmp) / str(i))
+            trainer.model.train()
+            runs.append(dict(name=name, trainer=trainer, wall=0.0))
+        for mark in cfg.marks:
+            while any(r["trainer"].step < mark for r in runs):
+                for run in runs:
+                    trainer, stop = run["trainer"], min(mark, run["trainer"].step + cfg.chunk)
+                    t0 = time.perf_counter()
+                    while trainer.step < stop:
+                        trainer.train_step()
+                    run["wall"] += time.perf_counter() - t0
+            for run in runs:
+                trainer = run["trainer"]
+                psnr, _ = evaluation.validate(trainer, cfg.eval_views)
+                stats = trainer.model.stats()
+                rows.append(dict(name=run["name"], step=mark, wall=round(run["wall"], 2), s_per_step=round(run["wall"] / mark, 4),
+                                 psnr=round(psnr, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
+                                 samples_per_ray=round(stats["samples_per_ray"], 2), load=round(os.getloadavg()[0], 2)))
+                print(json.dumps(rows[-1]), flush=True)
+    if cfg.log is not None:
+        with open(cfg.log, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main(tyro.cli(SideBySideConfig))
