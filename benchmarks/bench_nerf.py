@@ -140,6 +140,7 @@ def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -
         "iterations": trainer.step, "val_psnr": psnr, "val_ssim": ssim,
         "model_params": int(stats.get("model_params", 0)), "model_mb": float(stats.get("model_mb", 0.0)),
         "occupied_fraction": stats.get("occupied_fraction"), "samples_per_ray": stats.get("samples_per_ray"),
+        "finest_resolution": stats.get("finest_resolution"),
         "eval_s": time.perf_counter() - t0, "loadavg": os.getloadavg()[0], "omp_wait": runtime.OMP_WAIT,
     }
 
@@ -171,14 +172,14 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
     write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
     lines = [
         f"# Speed against error on {scene_name}", "",
-        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | occupied | samples/ray | load | OpenMP waits |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | finest level | occupied | samples/ray | load | OpenMP waits |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in rows:
         lines.append(
             f"| {r['preset']} | {r['budget_s']:g} | {r['train_s']:.1f} | {r['train_cpu_s']:.1f} | {r['iterations']} | "
-            f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | "
+            f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | {fmt(r.get('finest_resolution'), '.0f')} | "
             f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
         )
     atomic_write(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))

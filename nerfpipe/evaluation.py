@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from nerfpipe.checkpoint import CHECKPOINT
 from nerfpipe.errors import require
 from nerfpipe.pixel_sampler import background_colors, composite_pixels
 from nerfpipe.render import capped_size, render_cameras, resize_cameras, to_uint8
@@ -128,6 +129,9 @@ def finish(trainer) -> dict:
         "model": trainer.model_name,
         **stats,
     }
+    checkpoint = out / CHECKPOINT
+    if checkpoint.is_file():  # model, optimizer moments and random streams, as stored
+        metrics["checkpoint_mb"] = checkpoint.stat().st_size / 2**20
     if cfg.write_outputs:
         plots.plot_psnr(trainer.history, out / "psnr.png")
         plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")

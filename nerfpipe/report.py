@@ -53,6 +53,8 @@ LABELS = {
     "train_seconds": ("training time", "s"), "iterations": ("iterations", ""),
     "seconds_per_iteration": ("time per iteration", "s"), "rays_per_step": ("rays per step", ""),
     "model": ("model", ""), "model_params": ("parameters", ""), "model_mb": ("model size", "MB"),
+    "checkpoint_mb": ("checkpoint on disk (with optimizer state)", "MB"), "finest_resolution": ("finest grid level", "vertices along the box"),
+    "finest_voxel": ("finest voxel", "scene units"), "hashed_levels": ("hashed grid levels", ""),
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
     "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
     "sight_lines": ("sight lines (camera to sparse point)", ""), "free_space_tau": ("free-space slack before the point", ""),
