@@ -187,3 +187,35 @@ def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():
     wrong_right = darker.clone()
     wrong_right[:, 30:] = torch.rand(40, 30, 3, generator=g)  # the scored half is wrong: no fit can hide it
     assert fitted_colour_psnr(wrong_right, gt) < 15
+
+
+def test_background_distortion_matches_the_pairwise_formula():
+    """The field behind the box reports mip-NeRF 360's distortion of its weights (all pairs, in the
+    disparity-uniform sample coordinate) in training only, and it has gradients."""
+    aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    cfg = BackgroundFieldConfig(levels=(8,), num_samples=6, distortion_weight=0.1, init_density=1.0)
+    field = BackgroundField(cfg, aabb)
+    with torch.no_grad():
+        field.density_grid.tables[0].normal_()
+    rays = _rays(5)
+    t0 = torch.full((5,), 3.5)
+    args = (rays.origins, rays.directions, torch.zeros(5, 16), t0, torch.zeros(5, 3))
+    out = field(*args, generator=torch.Generator().manual_seed(0))
+    assert out.distortion is not None and out.distortion.shape == (5,)
+    out.distortion.sum().backward()
+    assert float(field.density_grid.tables[0].grad.abs().sum()) > 0
+    # reference: recompute the weights with the same jitter, then the O(S^2) sum
+    from nerfpipe.functional.contraction import disparity_samples
+    from nerfpipe.functional.volrend import render_weights
+
+    jitter = torch.rand((5, 6), generator=torch.Generator().manual_seed(0))
+    t, deltas = disparity_samples(t0, field.t_far, 6, jitter)
+    deltas = field._contracted_lengths(rays.origins, rays.directions, t0, deltas)
+    points = (rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]).reshape(-1, 3)
+    with torch.no_grad():
+        w, _ = render_weights(field.density(points).view(5, 6), deltas)
+        mids = (torch.arange(6) + 0.5) / 6
+        ref = (w[:, :, None] * w[:, None, :] * (mids[:, None] - mids[None, :]).abs()).sum((-1, -2)) + (w**2).sum(-1) / 18
+    torch.testing.assert_close(out.distortion.detach(), ref, rtol=1e-4, atol=1e-6)
+    field.eval()
+    assert field(*args).distortion is None

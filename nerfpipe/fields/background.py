@@ -20,6 +20,7 @@ from torch import nn
 
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear_corners
 from nerfpipe.functional.contraction import contract, disparity_samples, to_box_coordinates
+from nerfpipe.functional.packed import distortion_loss_packed
 from nerfpipe.functional.volrend import render_weights
 from nerfpipe.typing import Float, Tensor
 
@@ -46,6 +47,10 @@ class BackgroundFieldConfig:
     would fit each photograph's view of it on its own and show streaks in between)."""
     grid_lr: float = 0.1
     """Adam learning rate of its grids."""
+    distortion_weight: float = 0.0
+    """Weight of mip-NeRF 360's distortion loss on its samples (in their disparity-uniform coordinate):
+    the opacity along each ray gathers at one depth, so what the photographs share is put at one place
+    instead of painted at each view's own depth (0: off)."""
     init_density: float = 0.01
     """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
     to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and
@@ -62,6 +67,8 @@ class BehindBox:
     """Opacity of the background field along the ray (the rest is the given background)."""
     depth: Float[Tensor, "num_rays"]
     """Expected distance ``sum w_i t_i`` of the background field's samples."""
+    distortion: "Float[Tensor, 'num_rays'] | None" = None
+    """Distortion loss per ray, in training when ``distortion_weight`` is set."""
 
 
 class BackgroundField(nn.Module):
@@ -132,4 +139,11 @@ class BackgroundField(nn.Module):
         weights, _ = render_weights(sigma, deltas)
         acc = weights.sum(-1)
         rgb = (weights[..., None] * rgbs).sum(-2) + (1.0 - acc)[:, None] * background
-        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1))
+        distortion = None
+        if self.training and self.cfg.distortion_weight > 0:
+            edges = torch.arange(s + 1, device=origins.device, dtype=weights.dtype) / s  # uniform in disparity
+            ray_indices = torch.arange(n, device=origins.device).repeat_interleave(s)
+            distortion = distortion_loss_packed(
+                weights.reshape(-1), edges[:-1].repeat(n), edges[1:].repeat(n), ray_indices, n
+            )
+        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1), distortion=distortion)

@@ -279,8 +279,12 @@ class FastModel(Model):
         if self.background is not None:
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
         t_exit = self._behind_start(flat)
+        extras = {}
         if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
-            bg = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg, generator=self.generator).rgb
+            behind = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg, generator=self.generator)
+            bg = behind.rgb
+            if behind.distortion is not None:
+                extras["behind_distortion"] = behind.distortion.mean()
         samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
@@ -294,7 +298,6 @@ class FastModel(Model):
             rgb = self._corrected(rgb, flat.cam_idx)
         if self.training:
             self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
-        extras = {}
         if self.training and self.cfg.depth_weight > 0:
             extras.update(weights=weights, t_mids=t_mids, ray_indices=samples.ray_indices, t_exit=t_exit)
         if self.training and self.cfg.distortion_weight > 0:
@@ -329,6 +332,8 @@ class FastModel(Model):
             losses["depth"] = self.cfg.depth_weight * self._depth_loss(outputs.extras, target_depth.reshape(-1))
         if "distortion" in outputs.extras:
             losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
+        if "behind_distortion" in outputs.extras:
+            losses["behind_distortion"] = self.cfg.behind.distortion_weight * outputs.extras["behind_distortion"]
         if self.cfg.tv_weight > 0 and self.training:
             losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16, self.generator)
         return losses
