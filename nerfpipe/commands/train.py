@@ -29,6 +29,10 @@ def train(
 ) -> int:
     """Train a NeRF on a dataset (any format data_adapters.load reads).
 
+    Data-parallel on N processes or GPUs: ``torchrun --nproc-per-node N -m nerfpipe train PATH ...``
+    (``--rays-per-step`` is the total over the processes; add ``--max-restarts K`` to torchrun to
+    resume from the last checkpoint after a process dies).
+
     Args:
         path: dataset file or folder.
         model: registered model name (see the nerfpipe.models entry points): ``fast`` (the CPU
@@ -76,7 +80,10 @@ def train(
     out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
     require_all(evaluation.dependencies(cfg))  # before the dataset is read; the Trainer checks again for library use
     scene = load(path)
-    metrics = Trainer(cfg, scene, model, model_cfg, out).train()
+    trainer = Trainer(cfg, scene, model, model_cfg, out)
+    metrics = trainer.train()
+    if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
+        return 0
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")
     return 0
