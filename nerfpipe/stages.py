@@ -367,6 +367,24 @@ class Pipeline:
         names = [a for s in self.specs for a in s.produces + s.provides]
         return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
 
+    def run_many(self, sources: "list[str | Path]", out: "str | Path", config: object = None, on_update: "Callable | None" = None) -> list:
+        """Run the chain on every source, one Ray task each, into ``out/<source name>`` (resuming each).
+
+        Args:
+            sources: dataset folders or files.
+            out: folder of the run folders, ``index.html`` (links to every ``report.html``) and ``run_many.json``.
+            config: a :class:`nerfpipe.many.ManyConfig`: Ray address, CPUs and GPUs per run, retries, time budget.
+            on_update: called with the :class:`nerfpipe.many.RunOutcome` list whenever one changes.
+
+        Returns:
+            One :class:`nerfpipe.many.RunOutcome` per source, in order (``status`` ``done`` or ``failed``).
+
+        Needs Ray (``pip install nerfpipe[scale]``); see :mod:`nerfpipe.many`.
+        """
+        from nerfpipe.many import run_many
+
+        return run_many(self, sources, out, config, on_update)
+
     def _run_chain(self, ctx: StageContext, resume: bool, on_stage) -> "list[StageRecord]":
         records, running, last = [], not resume, 0.0
         for spec in self.specs:
