@@ -180,3 +180,26 @@ def test_kill_one_rank_and_torchrun_restarts_the_group_from_the_checkpoint(scene
     assert [row[0] for row in history] == list(range(1, iters + 1))
     r0, r1 = (load_file(str(tmp_path / f"rank{r}-1.safetensors")) for r in (0, 1))
     assert all(torch.equal(r0[k], r1[k]) for k in r0)
+
+
+def test_the_pipeline_under_torchrun_trains_on_every_rank_and_rank_0_alone_writes(scene, tmp_path):
+    toml = tmp_path / "pipe.toml"
+    trainer = {**TRAINER, "iters": 4, "final_eval_views": 1}
+    toml.write_text('stages = ["load", "train"]\n[train]\nmodel_options = ' + _toml_table(MODEL) + "\n[train.trainer]\n"
+                    + "\n".join(f"{k} = {json.dumps(v)}" for k, v in trainer.items()) + "\n")
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "nerfpipe", "run",
+           str(scene), "--pipeline", str(toml), "--out", str(out)]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert proc.stdout.count("nerfpipe run:") == 1  # one summary table: rank 0's
+    metrics = json.loads((out / "train" / "metrics.json").read_text())
+    assert metrics["processes"] == 2 and metrics["iterations"] == 4
+    assert sorted(p.name for p in (out / "stages").iterdir()) == ["load.done.json", "train.done.json"]
+
+
+def _toml_table(d: dict) -> str:
+    """An inline TOML table of a JSON-like dict."""
+    items = (f"{k} = {_toml_table(v) if isinstance(v, dict) else json.dumps(v)}" for k, v in d.items())
+    return "{ " + ", ".join(items) + " }"

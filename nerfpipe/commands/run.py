@@ -135,7 +135,13 @@ def run(
 
 
 def run_and_print(pipe, path, run_dir: Path, console, **options):
-    """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed."""
+    """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed
+    (by rank 0 alone under torchrun)."""
+    from nerfpipe.distributed import env_world
+
+    if not env_world().writer:
+        logging.getLogger("nerfpipe").setLevel(logging.WARNING)
+        return pipe.run(path, run_dir, **options)
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
     result = pipe.run(path, run_dir, **options)
     console.print(_summary_table(result))
