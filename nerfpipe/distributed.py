@@ -113,8 +113,11 @@ def _store(place: World):
 
 
 def rank_seed(seed: int, rank: int) -> int:
-    """Seed of rank ``rank``'s streams: rank 0 keeps ``seed`` (one process draws what it always drew)."""
-    return seed + (rank << 32)
+    """Seed of rank ``rank``'s streams: rank 0 keeps ``seed`` (one process draws what it always drew).
+
+    Within 32 bits: torch's CPU generator (mt19937) keeps only the low 32 bits of a seed, so
+    ``seed + (rank << 32)`` would give every rank the same rays."""
+    return seed if rank == 0 else (seed + rank * 0x9E3779B9) & 0xFFFFFFFF
 
 
 def _comm_device() -> torch.device:
@@ -228,8 +231,13 @@ class BufferSync:
         mask = torch.tensor(changed, dtype=torch.float32, device=_comm_device())
         dist.all_reduce(mask, op=dist.ReduceOp.MAX)
         send = [t for t, c in zip(tensors, mask.tolist()) if c]
-        work = [dist.broadcast(t.data, src=0, async_op=True) for t in send]
+        got = [t.data if dist.get_rank() == 0 else torch.empty_like(t) for t in send]
+        work = [dist.broadcast(g, src=0, async_op=True) for g in got]
         for w in work:
             w.wait()
-        self.mark()  # after the broadcasts, which bump the versions of the receivers' tensors
+        if dist.get_rank():
+            with torch.no_grad():  # copy_ bumps the version counters, so caches keyed on them (the coarse occupancy) see the change
+                for t, g in zip(send, got):
+                    t.copy_(g)
+        self.mark()
         return len(send)
