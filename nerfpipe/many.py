@@ -160,13 +160,18 @@ def _start_ray(ray, cfg: ManyConfig) -> bool:
     """Connect to the cluster, or start a local Ray; True when this call started it (and stops it)."""
     if ray.is_initialized():
         return False
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # read by the processes ray.init starts: no report sent
-    if cfg.address is not None:
-        ray.init(address=cfg.address, log_to_driver=False, configure_logging=False)
-        return True
-    cpus = cfg.num_cpus or os.cpu_count() or 1
-    ray.init(num_cpus=cpus, num_gpus=None if cfg.gpus_per_run else 0, include_dashboard=False, log_to_driver=False,
-             configure_logging=False, object_store_memory=100 * 2**20)  # results are small dicts: the minimum store
+    key, before = "RAY_USAGE_STATS_ENABLED", os.environ.get("RAY_USAGE_STATS_ENABLED")
+    os.environ[key] = before or "0"  # read by the processes ray.init starts: no usage report sent (unless asked for)
+    try:
+        if cfg.address is not None:
+            ray.init(address=cfg.address, log_to_driver=False, configure_logging=False)
+        else:
+            cpus = cfg.num_cpus or os.cpu_count() or 1
+            ray.init(num_cpus=cpus, num_gpus=None if cfg.gpus_per_run else 0, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False, object_store_memory=100 * 2**20)  # results are small dicts: the minimum store
+    finally:
+        if before is None:  # the host process's environment as it was
+            del os.environ[key]
     return True
 
 

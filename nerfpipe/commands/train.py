@@ -17,6 +17,7 @@ def train(
     lr: float = 5e-4,
     num_samples: "int | None" = None,
     eval_every: int = 100,
+    checkpoint_every: int = 500,
     eval_scale: float = 1.0,
     final_eval_views: int = 0,
     video_frames: int = 60,
@@ -45,6 +46,7 @@ def train(
         lr: Adam learning rate.
         num_samples: samples per ray (default: the model's).
         eval_every: validate every this many iterations.
+        checkpoint_every: write the checkpoint every this many iterations (and at the end).
         eval_scale: resolution factor of validation renders.
         final_eval_views: val views scored at the end (0: all).
         video_frames: frames of orbit.gif/mp4 and depth_orbit.gif (0: none).
@@ -73,7 +75,7 @@ def train(
             raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
         model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
     cfg = TrainerConfig(
-        iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every,
+        iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every, checkpoint_every=checkpoint_every,
         eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
         video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
