@@ -91,3 +91,11 @@ def test_two_captures_on_local_ray_and_a_killed_worker_resumes(captures, tmp_pat
     assert 'href="turntable_a/report.html"' in index and 'href="turntable_b/report.html"' in index
     summary = json.loads((out / "run_many.json").read_text())
     assert [s["status"] for s in summary] == ["done", "done"] and summary[0]["attempts"] == 2
+
+
+def test_the_command_refuses_a_missing_capture_in_one_line(tmp_path, capsys):
+    from nerfpipe.cli import main
+
+    assert main(["run-many", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no such file or folder" in err[0] and not (tmp_path / "out").exists()
