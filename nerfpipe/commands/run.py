@@ -196,7 +196,7 @@ class _LiveTable:
     """The captures' table, redrawn in place on a terminal, printed on each change otherwise (logs)."""
 
     def __init__(self, console) -> None:
-        self.console, self.live, self.last = console, None, None
+        self.console, self.live, self.last, self.states = console, None, None, None
 
     def __enter__(self) -> "_LiveTable":
         if self.console.is_terminal:
@@ -215,10 +215,13 @@ class _LiveTable:
         table = _many_table(outcomes)
         if self.live is not None:
             self.live.update(table)
-        else:
-            self.last = table
+            return
+        self.last, states = table, [f"{o.name} {o.status}" + (f" ({', '.join(o.stages)})" if o.stages else "")
+                                    + (f", attempt {o.attempts}" if o.attempts > 1 else "") for o in outcomes]
+        if states != self.states:  # a log gets a line when a capture's state changes, not on every poll
+            self.states = states
             done = sum(o.status in ("done", "failed") for o in outcomes)
-            self.console.print(f"run-many: {done}/{len(outcomes)} finished; " + ", ".join(f"{o.name} {o.status}" for o in outcomes))
+            self.console.print(f"run-many: {done}/{len(outcomes)} finished; " + "; ".join(states))
 
 
 def _many_table(outcomes):
