@@ -31,6 +31,7 @@ def _commands() -> dict:
         "synth": synth.synth,
         "demo": demo.demo,
         "run": run.run,
+        "run-many": run.run_many,
         "stage": run.stage,
         "stages": run.list_stages,
         "eval-mesh": __import__("nerfpipe.commands.eval_mesh", fromlist=["eval_mesh"]).eval_mesh,

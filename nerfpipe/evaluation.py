@@ -126,6 +126,8 @@ def finish(trainer) -> dict:
         "iterations": trainer.step,
         "seconds_per_iteration": trainer.train_seconds / max(trainer.step, 1),
         "rays_per_step": cfg.rays_per_step,
+        "processes": trainer.world.size,
+        "resumed_at": trainer.history.get("resumed_at", []),
         "model": trainer.model_name,
         **stats,
     }

@@ -21,6 +21,11 @@ a user error (:class:`NerfpipeError`) before any stage finished removes the fold
 half-way leaves neither a marker nor a half-written artifact (markers are written after the
 artifacts, both by ``os.replace``); the temporaries of a killed run are swept by the next one.
 
+Under torchrun (``torchrun --nproc-per-node N -m nerfpipe run DATA``) rank 0 runs the chain as one
+process would; the other ranks follow: they write nothing and take part only in the *collective*
+stages (:attr:`StageSpec.collective`: ``train``, data-parallel), which rank 0 announces as it reaches
+them; the scene and other inputs they read from the run folder rank 0 wrote.
+
 One run at a time: :meth:`Pipeline.run` holds the folder's lock (:func:`nerfpipe.runlock.run_lock`)
 from before it sweeps temporaries until the last stage ends, so a second run into the same folder
 refuses instead of deleting the first one's files; a lock left by a killed run is taken over.
@@ -42,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nerfpipe import distributed
 from nerfpipe.atomic import TMP_PREFIX, _json_default, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
 from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, require_all
@@ -84,6 +90,9 @@ class StageSpec:
     dependencies: "tuple[tuple[str, str], ...]" = ()
     """Optional modules ``(module, extra)`` the stage needs; :meth:`Pipeline.run` imports those of every
     stage of the chain before running any, so a missing one never costs the earlier stages' work."""
+    collective: bool = False
+    """Under torchrun, every process runs the stage together (``train``: data-parallel); the others run
+    on rank 0 alone. A collective stage writes only from rank 0 (:class:`nerfpipe.distributed.World`)."""
 
 
 @dataclass
@@ -352,6 +361,9 @@ class Pipeline:
         ctx = self.context(check_output_folder(run_dir, "the run folder"), source, device=check_device(device), time_budget=time_budget, cache=cache)
         require_all(tuple(d for s in self.specs for d in s.dependencies))
         self.validate(ctx)
+        world = distributed.world(ctx.device) if distributed.env_world().active else distributed.SINGLE
+        if not world.writer:
+            return self._follow(ctx)
         created = not ctx.run_dir.exists()
         with run_lock(ctx.run_dir):  # makes the folder; taken before the sweep: the temporaries of a live run are not stale
             if (ctx.run_dir / RUN_RECORD).is_file():  # only a folder nerfpipe ran in holds temporaries of ours
@@ -360,10 +372,40 @@ class Pipeline:
             try:
                 _check_run_record(ctx, self.names, resume)
                 records = self._run_chain(ctx, resume, on_stage)
+                if world.active:  # not after an error: the other ranks may be inside a collective, and end with this process
+                    distributed.broadcast_object(None)
             except NerfpipeError:
                 if created and not any((read_marker(ctx, n) or {}).get("status") == "ran" for n in self.names):
                     shutil.rmtree(ctx.run_dir, ignore_errors=True)  # a refused input, no stage's work: leave no folder behind
                 raise
+        names = [a for s in self.specs for a in s.produces + s.provides]
+        return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
+
+    def run_many(self, sources: "list[str | Path]", out: "str | Path", config: object = None, on_update: "Callable | None" = None) -> list:
+        """Run the chain on every source, one Ray task each, into ``out/<source name>`` (resuming each).
+
+        Args:
+            sources: dataset folders or files.
+            out: folder of the run folders, ``index.html`` (links to every ``report.html``) and ``run_many.json``.
+            config: a :class:`nerfpipe.many.ManyConfig`: Ray address, CPUs and GPUs per run, retries, time budget.
+            on_update: called with the :class:`nerfpipe.many.RunOutcome` list whenever one changes.
+
+        Returns:
+            One :class:`nerfpipe.many.RunOutcome` per source, in order (``status`` ``done`` or ``failed``).
+
+        Needs Ray (``pip install nerfpipe[scale]``); see :mod:`nerfpipe.many`.
+        """
+        from nerfpipe.many import run_many
+
+        return run_many(self, sources, out, config, on_update)
+
+    def _follow(self, ctx: StageContext) -> PipelineResult:
+        """Ranks 1 .. N-1 under torchrun: run the collective stages rank 0 announces, until it says the chain ended."""
+        records, t0 = [], time.monotonic()
+        while (name := distributed.broadcast_object(None)) is not None:
+            spec, start = self.registry[name], time.monotonic()
+            spec.run(self.configs[name], ctx)
+            records.append(StageRecord(name, "ran", time.monotonic() - start))
         names = [a for s in self.specs for a in s.produces + s.provides]
         return PipelineResult(ctx.run_dir, records, time.monotonic() - t0, ctx, names)
 
@@ -443,6 +485,8 @@ def run_stage(spec: StageSpec, config: object, ctx: StageContext) -> StageRecord
         raise NerfpipeError(f"stage '{spec.name}' needs artifact '{missing[0]}', which is missing", ctx.run_dir)
     ctx.log.info("stage %s: running", spec.name)
     t0 = time.monotonic()
+    if spec.collective and distributed.env_world().active:
+        distributed.broadcast_object(spec.name)  # the other ranks of the torchrun group join in (Pipeline._follow)
     out = spec.run(config, ctx) or {}
     seconds = time.monotonic() - t0
     for name, value in out.items():

@@ -14,15 +14,23 @@ global stream seeded only for that call (:func:`nerfpipe.scoped.seeded_init`), e
 draw comes from the run's own generators (``sampler_rng`` for rays and backgrounds, the model's
 ``generator`` for jitter and refreshes; both saved in the checkpoint, so a resumed run draws what an
 uninterrupted one would), and ``num_threads`` holds only while :meth:`Trainer.train` runs.
+
+Under torchrun (``torchrun --nproc-per-node N -m nerfpipe train ...``) the N processes train one
+model data-parallel (:mod:`nerfpipe.distributed`): ``rays_per_step`` is the step's total, each rank
+draws its share from its own streams, gradients are summed over the ranks, the model's own state
+(occupancy grid, box) is sent from rank 0, and rank 0 alone validates and writes. After torchrun
+restarts a failed group the trainer resumes from the checkpoint, with the same or another N.
 """
 
+import contextlib
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
+from nerfpipe import distributed
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
@@ -150,6 +158,11 @@ def backgrounds(mode: str, has_alpha: bool) -> "tuple[str, str]":
     return mode, mode
 
 
+def share(total: int, world: distributed.World) -> int:
+    """This rank's part of ``total`` (rays per step): equal parts, the remainder to the first ranks."""
+    return total // world.size + (world.rank < total % world.size)
+
+
 def psnr_from_mse(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
@@ -162,6 +175,10 @@ class Trainer:
         the output folder, the optional modules the outputs need, and every image the run will read."""
         from nerfpipe import evaluation
 
+        self.world = distributed.world(cfg.device)
+        if self.world.active:
+            refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
+            cfg = replace(cfg, device=distributed.device_for(cfg.device, self.world))
         self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
@@ -169,13 +186,18 @@ class Trainer:
         model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene)), cfg.seed)
         self.model: Model = model.to(cfg.device)
         self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
+        if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
+            self.model.generator.manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
         # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
         fused = torch.device(cfg.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
         for group in self.optimizer.param_groups:  # the schedule scales these (saved with the optimiser)
             group.setdefault("initial_lr", group["lr"])
-        self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=cfg.track_rays)
+        self.generator = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
+        self.rays = share(cfg.rays_per_step, self.world)
+        """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
+        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world))
+        self.sync: "distributed.BufferSync | None" = None
         split = evaluation.eval_split(scene)
         if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
             check_images(scene, scene.splits[split])
@@ -214,14 +236,23 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
         for group, lr in zip(self.optimizer.param_groups, initial):
             group["initial_lr"] = lr
-        stream = state["torch_rng"]
-        if stream.numel() == self.model.generator.get_state().numel():  # else saved on another device type:
-            self.model.generator.set_state(stream)  # that stream cannot go on here, this run's own does
-        self.generator.set_state(state["sampler_rng"])
+        ranks = state.get("ranks", {"sampler_rng": state["sampler_rng"][None], "torch_rng": state["torch_rng"][None]})
+        if self.world.rank < len(ranks["sampler_rng"]):  # else a rank the saved run did not have: its fresh streams
+            stream = ranks["torch_rng"][self.world.rank].clone()  # own storage: set_state reads from offset 0 (a row crashes it)
+            if stream.numel() == self.model.generator.get_state().numel():  # else saved on another device type:
+                self.model.generator.set_state(stream)  # that stream cannot go on here, this run's own does
+            self.generator.set_state(ranks["sampler_rng"][self.world.rank].clone())
         self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
+        self.history["resumed_at"] = [*self.history.get("resumed_at", []), self.step]
 
     def save(self) -> None:
-        save_checkpoint(self.out / CHECKPOINT, self.state())
+        """Rank 0 writes the checkpoint, with every rank's random streams (a collective in a group)."""
+        ranks = None
+        if self.world.active:
+            ranks = {"sampler_rng": distributed.gather_bytes(self.generator.get_state()),
+                     "torch_rng": distributed.gather_bytes(self.model.generator.get_state())}
+        if self.world.writer:
+            save_checkpoint(self.out / CHECKPOINT, self.state() if ranks is None else {**self.state(), "ranks": ranks})
 
     def write_config(self) -> None:
         write_json(
@@ -237,17 +268,26 @@ class Trainer:
     def train_step(self) -> float:
         """One optimiser step; returns the colour MSE of the batch."""
         self.fire(Callback.BEFORE_TRAIN_ITERATION)
+        if self.sync is not None:
+            self.sync()  # the hooks' changes (occupancy grid, box) as rank 0 made them
         self.apply_lr()
-        batch = self.sampler.sample(self.cfg.rays_per_step, self.generator)
+        batch = self.sampler.sample(self.rays, self.generator)
         outputs = self.model.get_outputs(batch.rays, batch.background)
         losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
         self.optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
+        mse = float(torch.mean((outputs.rgb.detach() - batch.rgb) ** 2))
+        if self.world.active:  # the gradient (and the MSE) over the union of the ranks' rays
+            weight = self.rays / self.cfg.rays_per_step
+            params = [p for group in self.optimizer.param_groups for p in group["params"]]
+            (mse,) = distributed.all_reduce_gradients(params, weight, [weight * mse])
         drop_stale_optimizer_state(self.optimizer)
         self.optimizer.step()
+        if self.sync is not None:
+            self.sync.mark()
         self.step += 1
         self.fire(Callback.AFTER_TRAIN_ITERATION)
-        return float(torch.mean((outputs.rgb.detach() - batch.rgb) ** 2))
+        return mse
 
     def clock(self) -> float:
         """Seconds on the configured clock (see :attr:`TrainerConfig.clock`)."""
@@ -270,38 +310,66 @@ class Trainer:
         """Train until ``iters`` or ``time_budget``, then validate and write every output.
 
         Holds the run folder's lock (:func:`nerfpipe.runlock.run_lock`): a second training into the
-        same folder refuses while this one runs."""
-        with run_lock(self.out), torch_threads(self.cfg.num_threads):
-            return self._train()
+        same folder refuses while this one runs. In a torchrun group every rank calls this; rank 0
+        holds the lock and writes, and every rank returns rank 0's metrics."""
+        lock = run_lock(self.out) if self.world.writer else contextlib.nullcontext()
+        with lock, torch_threads(self.cfg.num_threads):
+            metrics = self._train()
+        return distributed.broadcast_object(metrics) if self.world.active else metrics
 
     def _train(self) -> dict:
         from nerfpipe.progress import TrainProgress
         from nerfpipe import evaluation
 
-        self.out.mkdir(parents=True, exist_ok=True)
-        checkpoint = find_checkpoint(self.out) if self.cfg.resume else None
+        writer = self.world.writer
+        if writer:
+            self.out.mkdir(parents=True, exist_ok=True)
+        resume = self.cfg.resume or self.world.restarts > 0  # torchrun restarted the group: go on from the checkpoint
+        checkpoint = find_checkpoint(self.out) if resume else None
         if checkpoint is not None:
             self.resume_from(checkpoint)
-        self.write_config()
+        if self.world.active:
+            distributed.broadcast_module(self.model)  # identical ranks from the start, whatever each built or read
+            self.sync = distributed.BufferSync(self.model)
+        if writer:
+            self.write_config()
         self.model.train()
-        with TrainProgress(self.cfg, self.step, self.train_seconds) as bar:
-            if self.step == 0 and self.cfg.eval_every:
+        with TrainProgress(self.cfg, self.step, self.train_seconds) if writer else _Quiet() as bar:
+            if self.step == 0 and self.cfg.eval_every and writer:
                 evaluation.validate(self, self.cfg.eval_views)  # the starting point of the curves
             while not self.done():
                 t0 = self.clock()
                 mse = self.train_step()
                 self.train_seconds += self.clock() - t0
+                if self.world.active:  # one clock for the group, so every rank stops at the same step
+                    self.train_seconds = distributed.maximum(self.train_seconds)
                 self.history["train"].append([self.step, self.train_seconds, psnr_from_mse(mse)])
                 bar.update(self.step, self.train_seconds, psnr_from_mse(mse))
                 self.periodic(evaluation, bar)
         self.fire(Callback.AFTER_TRAIN)
         self.save()
-        return evaluation.finish(self)
+        return evaluation.finish(self) if writer else None
 
     def periodic(self, evaluation, bar) -> None:
         every, ck = self.cfg.eval_every, self.cfg.checkpoint_every
-        if every and self.step % every == 0 and not self.done():
+        if every and self.step % every == 0 and not self.done() and self.world.writer:
             psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
             bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")
         if ck and self.step % ck == 0:
             self.save()
+
+
+class _Quiet:
+    """The progress display of a rank that does not write (ranks 1 .. N-1 of a group)."""
+
+    def __enter__(self) -> "_Quiet":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def update(self, *args) -> None:
+        pass
+
+    def log(self, text: str) -> None:
+        pass

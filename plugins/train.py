@@ -8,6 +8,9 @@ Resume: when the stage runs again (interrupted, or with more ``iters`` or a new 
 ``train/checkpoint.safetensors`` holds the same model, model options and training options (``iters``
 and ``time_budget`` aside), training continues from that checkpoint; otherwise it starts afresh.
 
+Under torchrun every process runs this stage (it is *collective*, :mod:`nerfpipe.distributed`): rank 0
+decides resume and budget and sends them, and alone clears or writes ``train/``.
+
 Time budget: the trainer's ``time_budget`` (training seconds, validation excluded) is the smaller
 of ``trainer.time_budget`` and ``budget_share`` of what is left of the pipeline's budget.
 """
@@ -92,14 +95,18 @@ def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> 
 
 
 def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
+    from nerfpipe import distributed
     from nerfpipe.trainer import Trainer
 
+    world = distributed.world(ctx.device)
     scene = ctx.get("scene")
     model_cfg = model_config(config.model, config.model_options)
     trainer_cfg = _trainer_config(config, ctx)
     out = ctx.path(TRAIN_DIR)
-    resume = _resumable(out, config.model, model_cfg, trainer_cfg)
-    if not resume and out.exists():
+    resume = _resumable(out, config.model, model_cfg, trainer_cfg) if world.writer else None
+    if world.active:  # rank 0's choices (its clock gives the budget): every rank must stop at the same step
+        trainer_cfg, resume = distributed.broadcast_object((trainer_cfg, resume))
+    if not resume and out.exists() and world.writer:
         shutil.rmtree(out)
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
@@ -124,4 +131,5 @@ STAGE = StageSpec(
     provides=("model", "metrics"),
     restore=restore,
     dependencies=evaluation.dependencies(TrainStageConfig().trainer),
+    collective=True,
 )

@@ -135,13 +135,106 @@ def run(
 
 
 def run_and_print(pipe, path, run_dir: Path, console, **options):
-    """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed."""
+    """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed
+    (by rank 0 alone under torchrun)."""
+    from nerfpipe.distributed import env_world
+
+    if not env_world().writer:
+        logging.getLogger("nerfpipe").setLevel(logging.WARNING)
+        return pipe.run(path, run_dir, **options)
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
     result = pipe.run(path, run_dir, **options)
     console.print(_summary_table(result))
     for line in _figures(result.run_dir):
         console.print(line)
     return result
+
+
+def run_many(
+    paths: Annotated["tuple[Path, ...]", Positional],
+    out: Path = Path("runs"),
+    stages: "str | None" = None,
+    pipeline: "Path | None" = None,
+    address: "str | None" = None,
+    cpus_per_run: float = 1.0,
+    gpus_per_run: float = 0.0,
+    max_retries: int = 2,
+    num_cpus: "int | None" = None,
+    time_budget: "float | None" = None,
+) -> int:
+    """Run the pipeline on many captures, one Ray task each (needs ``pip install nerfpipe[scale]``).
+
+    Each capture runs into OUT/<name>, resuming what is there; a task whose worker dies runs again and
+    resumes. A table follows the runs; OUT/index.html links every run's report.html.
+
+    Args:
+        paths: dataset folders or files (one run each).
+        out: folder of the run folders and of index.html.
+        stages: comma-separated chain (default: the whole pipeline).
+        pipeline: TOML file with the chain and the stages' options.
+        address: an existing Ray cluster (``auto`` or ``ray://host:10001``); default: a local Ray for this command.
+        cpus_per_run: CPUs reserved for each capture (its torch threads too).
+        gpus_per_run: GPUs reserved for each capture (> 0: it trains on cuda).
+        max_retries: times a capture whose worker died is run again.
+        num_cpus: CPUs of the local Ray (default: the machine's).
+        time_budget: seconds each capture's pipeline may take.
+    """
+    from nerfpipe.many import ManyConfig
+
+    cfg = ManyConfig(address=address, cpus_per_run=cpus_per_run, gpus_per_run=gpus_per_run, max_retries=max_retries,
+                     num_cpus=num_cpus, time_budget=time_budget)
+    console = _console()
+    pipe = _pipeline(stages, pipeline, installed_stages(console))
+    console.print(f"chain: {' -> '.join(pipe.names)}   {len(paths)} captures into {out}")
+    with _LiveTable(console) as live:
+        outcomes = pipe.run_many(list(paths), out, cfg, on_update=live.update)
+    console.print(f"index: {(Path(out) / 'index.html').resolve()}")
+    return 0 if all(o.status == "done" for o in outcomes) else 1
+
+
+class _LiveTable:
+    """The captures' table, redrawn in place on a terminal, printed on each change otherwise (logs)."""
+
+    def __init__(self, console) -> None:
+        self.console, self.live, self.last, self.states = console, None, None, None
+
+    def __enter__(self) -> "_LiveTable":
+        if self.console.is_terminal:
+            from rich.live import Live
+
+            self.live = Live(console=self.console, refresh_per_second=2).__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.live is not None:
+            self.live.__exit__(*exc)
+        elif self.last is not None:
+            self.console.print(self.last)
+
+    def update(self, outcomes) -> None:
+        table = _many_table(outcomes)
+        if self.live is not None:
+            self.live.update(table)
+            return
+        self.last, states = table, [f"{o.name} {o.status}" + (f" ({', '.join(o.stages)})" if o.stages else "")
+                                    + (f", attempt {o.attempts}" if o.attempts > 1 else "") for o in outcomes]
+        if states != self.states:  # a log gets a line when a capture's state changes, not on every poll
+            self.states = states
+            done = sum(o.status in ("done", "failed") for o in outcomes)
+            self.console.print(f"run-many: {done}/{len(outcomes)} finished; " + "; ".join(states))
+
+
+def _many_table(outcomes):
+    from rich.table import Table
+
+    table = Table(title="nerfpipe run-many")
+    for col in ("capture", "status", "attempts", "stages done", "val PSNR", "seconds"):
+        table.add_column(col, justify="right" if col in ("attempts", "val PSNR", "seconds") else "left")
+    for o in outcomes:
+        psnr = f"{o.figures['val_psnr']:.2f}" if "val_psnr" in o.figures else ""
+        status = o.status + (f": {o.error[:60]}" if o.error else "")
+        table.add_row(o.name, status, str(o.attempts), ", ".join(o.stages), psnr, f"{o.seconds:.0f}")
+    return table
 
 
 def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]) -> int:

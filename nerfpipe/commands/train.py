@@ -17,6 +17,7 @@ def train(
     lr: float = 5e-4,
     num_samples: "int | None" = None,
     eval_every: int = 100,
+    checkpoint_every: int = 500,
     eval_scale: float = 1.0,
     final_eval_views: int = 0,
     video_frames: int = 60,
@@ -28,6 +29,10 @@ def train(
     resume: bool = False,
 ) -> int:
     """Train a NeRF on a dataset (any format data_adapters.load reads).
+
+    Data-parallel on N processes or GPUs: ``torchrun --nproc-per-node N -m nerfpipe train PATH ...``
+    (``--rays-per-step`` is the total over the processes; add ``--max-restarts K`` to torchrun to
+    resume from the last checkpoint after a process dies).
 
     Args:
         path: dataset file or folder.
@@ -41,6 +46,7 @@ def train(
         lr: Adam learning rate.
         num_samples: samples per ray (default: the model's).
         eval_every: validate every this many iterations.
+        checkpoint_every: write the checkpoint every this many iterations (and at the end).
         eval_scale: resolution factor of validation renders.
         final_eval_views: val views scored at the end (0: all).
         video_frames: frames of orbit.gif/mp4 and depth_orbit.gif (0: none).
@@ -69,14 +75,17 @@ def train(
             raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
         model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
     cfg = TrainerConfig(
-        iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every,
+        iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every, checkpoint_every=checkpoint_every,
         eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
         video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
     out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
     require_all(evaluation.dependencies(cfg))  # before the dataset is read; the Trainer checks again for library use
     scene = load(path)
-    metrics = Trainer(cfg, scene, model, model_cfg, out).train()
+    trainer = Trainer(cfg, scene, model, model_cfg, out)
+    metrics = trainer.train()
+    if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
+        return 0
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")
     return 0
