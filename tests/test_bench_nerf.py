@@ -75,3 +75,14 @@ def test_steps_ab_tool_parses_options_and_validates_at_each_mark(scene_path, tmp
     assert [r["step"] for r in rows] == [2, 4] and rows[1]["wall"] >= rows[0]["wall"] > 0
     assert all(r["psnr"] > 5 and r["samples_per_ray"] > 0 for r in rows)
     assert [json.loads(line)["psnr"] for line in log.read_text().splitlines()] == [r["psnr"] for r in rows]
+
+
+def test_side_by_side_interleaves_variants_and_reports_size(scene_path, tmp_path):
+    from benchmarks.side_by_side import SideBySideConfig, main, parse_variant
+
+    assert parse_variant("dense:preset='small' levels=(8,16)") == ("dense", "small", ("levels=(8,16)",))
+    assert parse_variant("compact:") == ("compact", "auto", ())
+    rows = main(SideBySideConfig(tiny_lego(scene_path, tmp_path), variants=("dense:preset='small' levels=(8,16)", "compact:log2_hashmap_size=9"),
+                                 marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads()))
+    assert [r["name"] for r in rows] == ["dense", "compact"] and all(r["step"] == 3 and r["s_per_step"] > 0 for r in rows)
+    assert rows[1]["model_mb"] < rows[0]["model_mb"]  # hashed into 512-row tables
