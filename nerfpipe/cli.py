@@ -37,6 +37,7 @@ def _commands() -> dict:
         "eval-mesh": __import__("nerfpipe.commands.eval_mesh", fromlist=["eval_mesh"]).eval_mesh,
         "mesh": __import__("nerfpipe.commands.mesh", fromlist=["mesh"]).mesh,
         "bench": __import__("nerfpipe.commands.bench", fromlist=["bench"]).bench,
+        "view": __import__("nerfpipe.commands.view", fromlist=["view"]).view,
     }
 
 

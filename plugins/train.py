@@ -46,6 +46,10 @@ class TrainStageConfig:
     longer side, so a budgeted run is not spent scoring phone photos."""
     budget_share: float = 0.6
     """Share of the pipeline's remaining time budget given to training (the rest: evaluation, later stages)."""
+    view: bool = False
+    """Watch the training in the browser (:mod:`nerfpipe.viewer.training`; needs ``nerfpipe[viewer]``)."""
+    view_port: int = 7007
+    """Port of that viewer (0: any free one)."""
 
     def __post_init__(self) -> None:
         """The model name and options are checked when the pipeline is built, not after the stages before this one ran."""
@@ -110,6 +114,10 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
         shutil.rmtree(out)
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
+    if config.view:
+        from nerfpipe.viewer.training import watch
+
+        watch(trainer, port=config.view_port)
     metrics = trainer.train()
     return {"model": trainer.model.eval(), "metrics": metrics}
 

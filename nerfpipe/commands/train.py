@@ -27,6 +27,8 @@ def train(
     device: str = "cpu",
     threads: "int | None" = None,
     resume: bool = False,
+    view: bool = False,
+    view_port: int = 7007,
 ) -> int:
     """Train a NeRF on a dataset (any format data_adapters.load reads).
 
@@ -56,6 +58,9 @@ def train(
         device: torch device.
         threads: CPU threads for torch (default: torch's choice).
         resume: continue from the run folder's checkpoint.
+        view: watch the training in the browser (nerfpipe view's viewer: live render and PSNR curves,
+            at most 5 % of the training time; needs nerfpipe[viewer]).
+        view_port: port of the viewer (0: any free one).
     """
     import dataclasses
 
@@ -80,9 +85,13 @@ def train(
         video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
     out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
-    require_all(evaluation.dependencies(cfg))  # before the dataset is read; the Trainer checks again for library use
+    require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if view else ()))  # before the dataset is read
     scene = load(path)
     trainer = Trainer(cfg, scene, model, model_cfg, out)
+    if view and trainer.world.writer:  # rank 0 of a torchrun group shows it
+        from nerfpipe.viewer.training import watch
+
+        watch(trainer, port=view_port)
     metrics = trainer.train()
     if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
         return 0
