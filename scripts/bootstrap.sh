@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=${NERFPIPE_VENV:-.venv}
 
-# --test: also the system packages only the tests need (headless Chromium for the report test).
+# --test: also the system packages only the tests need (headless Chromium for the report and viewer tests).
 WITH_TEST_DEPS=0
 [ "${1:-}" = "--test" ] && WITH_TEST_DEPS=1
 

@@ -72,6 +72,7 @@ class Chromium:
             self._ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout)
             self.call("Network.enable")
             self.call("Page.enable")
+            self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
         except Exception:
             self.close()
             raise
@@ -139,6 +140,7 @@ class Chromium:
                 self.process.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 self.process.kill()
+                self.process.wait(timeout=10)
 
 
 __all__ = ["BACKGROUND_JS", "FRUSTUMS_JS", "NODES_JS", "WATCH_BACKGROUND_JS", "Chromium", "find_chromium"]
