@@ -1,0 +1,198 @@
+"""The viewer's goals, measured in headless Chromium on this machine.
+
+1. **Start**: ``nerfpipe view RUN`` launched as a process, to the page showing every camera frustum and
+   the first live render (seconds from the launch).
+2. **Move latency**: the browser's camera turned (``cameraControl.rotate``), to the page showing the
+   first new render (the low frame), timed by the page's own clock (ms since the epoch, on both
+   sides); ``--moves`` times, each after the previous refinement finished.
+3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
+   each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
+   the largest pixel difference (of 255) between the two.
+4. **Training overhead** (``--train DATASET``): ``nerfpipe train DATASET --iters N`` alone and with
+   ``--view`` and a browser watching (its camera turned every few seconds), alternately ``--repeats``
+   times each: iterations per training second of each.
+
+Usage::
+
+    python -m benchmarks.viewer_bench RUN [--train DATASET --iters 150] [--json out.json]
+"""
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nerfpipe.viewer.headless import BACKGROUND_JS, FRUSTUMS_JS, WATCH_BACKGROUND_JS, Chromium
+
+PY = [sys.executable, "-m", "nerfpipe"]
+ROTATE_JS = "(() => { window.__viserMutable.cameraControl.rotate(%f, %f, false); return Date.now(); })()"
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+def _launch_view(run: Path, port: int) -> "tuple[subprocess.Popen, str, float]":
+    start = time.perf_counter()
+    proc = subprocess.Popen([*PY, "view", str(run), "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env())
+    for line in proc.stdout:
+        m = re.search(r"at (http://\S+)", line)
+        if m and "nerfpipe view" in line:
+            return proc, m.group(1), start
+    raise RuntimeError("nerfpipe view did not start")
+
+
+def _quiet(browser: Chromium, still: float = 1.5, timeout: float = 60.0) -> None:
+    """Wait until the page's render has not changed for ``still`` seconds (the refinement finished)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        n = browser.evaluate("window.__bgLog.length")
+        time.sleep(still)
+        if browser.evaluate("window.__bgLog.length") == n:
+            return
+
+
+def measure_view(run: Path, moves: int, tmp: Path) -> dict:
+    num_cameras = None
+    proc, url, start = _launch_view(run, 7117)
+    browser = Chromium(tmp / "profile-view", width=1200, height=800)
+    try:
+        url_seconds = time.perf_counter() - start
+        browser.open(url)
+        num_cameras = browser.wait_for(FRUSTUMS_JS, lambda n: n is not None and n > 0, timeout=60.0)
+        frustum_seconds = time.perf_counter() - start
+        size = browser.wait_for(BACKGROUND_JS, timeout=60.0)
+        render_seconds = time.perf_counter() - start
+        browser.evaluate(WATCH_BACKGROUND_JS)
+        latencies, sizes = [], []
+        for k in range(moves):
+            _quiet(browser)
+            t = browser.evaluate(ROTATE_JS % (0.25 if k % 2 == 0 else -0.2, 0.03))
+            first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t})[0] || null", timeout=30.0)
+            latencies.append((first[0] - t) / 1000)
+            sizes.append(first[1:])
+        _quiet(browser)
+        browser.screenshot(tmp / "view.png")
+        outside = browser.outside_requests()
+    finally:
+        browser.close()
+        proc.terminate()
+        proc.wait(timeout=30)
+    return {"url_printed_s": url_seconds, "frustums_shown_s": frustum_seconds, "first_render_shown_s": render_seconds, "cameras": num_cameras,
+            "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "outside_requests": outside,
+            "screenshot": str(tmp / "view.png")}  # fmt: skip
+
+
+def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), frames: int = 4) -> dict:
+    """Keyframes from the browser, previews in the viewer, the same path rendered headless: max difference."""
+    import imageio.v3 as iio
+
+    from nerfpipe.viewer.progressive import RenderThread
+    from nerfpipe.viewer.server import Viewer
+    from nerfpipe.viewer.source import open_source
+
+    source = open_source(run)
+    viewer = Viewer(source.scene, source.render, port=0, path_file=tmp / "bench_path.json", thumbnails=False)
+    thread = RenderThread(viewer.renderers)
+    viewer.wake = thread.wake
+    browser = Chromium(tmp / "profile-path", width=1200, height=800)
+    try:
+        browser.open(viewer.url)
+        browser.wait_for(BACKGROUND_JS, timeout=60.0)
+        client = next(iter(viewer.server.get_clients().values()))
+        for turn in (0.0, 0.5):
+            browser.evaluate(ROTATE_JS % (turn, 0.0))
+            time.sleep(1.0)
+            viewer.add_keyframe_from(client)
+        viewer.path_width.value, viewer.path_height.value = size
+        viewer.path_fps.value, viewer.path_seconds.value = float(frames), 1.0
+        file = viewer.save_path()
+        for k in range(frames):
+            viewer.preview_frame(k, client)
+            deadline = time.monotonic() + 120
+            while k not in viewer.preview_frames and time.monotonic() < deadline:
+                time.sleep(0.05)
+    finally:
+        browser.close()
+        thread.stop()
+        viewer.stop()
+    subprocess.run([*PY, "render", str(run), "--path", str(file), "--pngs"], check=True, capture_output=True, env=_env())
+    diffs = []
+    for k in range(frames):
+        headless = iio.imread(run / "renders" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
+        diffs.append(int(np.abs(headless - viewer.preview_frames[k].astype(int)).max()))
+    return {"path_file": str(file), "frames": frames, "size": list(size), "max_pixel_difference": diffs}
+
+
+def _train(dataset: Path, out: Path, iters: int, view: bool, tmp: Path) -> float:
+    args = [*PY, "train", str(dataset), "--out", str(out), "--iters", str(iters), "--video-frames", "0", "--eval-every", "0", "--final-eval-views", "1", "--eval-scale", "0.25"]
+    if view:
+        args += ["--view", "--view-port", "7118"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env())
+    browser = None
+    try:
+        if view:
+            for line in proc.stdout:
+                m = re.search(r"watching the training at (http://\S+)", line)
+                if m:
+                    browser = Chromium(tmp / f"profile-train-{time.monotonic_ns()}", width=1000, height=700)
+                    browser.open(m.group(1))
+                    break
+            while proc.poll() is None:  # turn the camera now and then, as a user would
+                time.sleep(3.0)
+                try:
+                    browser.evaluate(ROTATE_JS % (0.2, 0.0))
+                except Exception:  # noqa: BLE001 - the page goes when training ends
+                    break
+        proc.wait()
+    finally:
+        if browser is not None:
+            browser.close()
+    metrics = json.loads((out / "metrics.json").read_text())
+    return metrics["iterations"] / metrics["train_seconds"]
+
+
+def measure_training(dataset: Path, iters: int, repeats: int, tmp: Path) -> dict:
+    rates = {"plain": [], "view": []}
+    for r in range(repeats):
+        for mode in ("plain", "view"):
+            rates[mode].append(_train(dataset, tmp / f"train-{mode}-{r}", iters, mode == "view", tmp))
+    plain, view = np.median(rates["plain"]), np.median(rates["view"])
+    return {"iters": iters, "its_per_s": rates, "overhead": float(1 - view / plain)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run", type=Path)
+    p.add_argument("--moves", type=int, default=5)
+    p.add_argument("--train", type=Path, default=None)
+    p.add_argument("--iters", type=int, default=150)
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--skip-view", action="store_true")
+    p.add_argument("--json", type=Path, default=None)
+    a = p.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="viewer_bench-"))
+    out = {"run": str(a.run), "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]}
+    if not a.skip_view:
+        out["view"] = measure_view(a.run, a.moves, tmp)
+        print(json.dumps(out["view"], indent=1), flush=True)
+        out["path"] = measure_path(a.run, tmp)
+        print(json.dumps(out["path"], indent=1), flush=True)
+    if a.train is not None:
+        out["training"] = measure_training(a.train, a.iters, a.repeats, tmp)
+        print(json.dumps(out["training"], indent=1), flush=True)
+    out["loadavg_end"] = Path("/proc/loadavg").read_text().split()[:3]
+    print(json.dumps(out, indent=1))
+    if a.json is not None:
+        a.json.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
