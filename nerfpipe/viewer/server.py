@@ -81,6 +81,9 @@ class Viewer:
         self.layers: "dict[str, list]" = {}
         """Handles of what is drawn, per layer (``/cameras``, ``/points``, ...), for the visibility boxes."""
         self._lock = threading.Lock()
+        self._stopped = False
+        self._first_frame = threading.Event()
+        """Set when the first live frame was shown: the photos on the frustums wait for it (decoding them competes for the CPU)."""
         self._draw_scene(mesh, thumbnails)
         self._build_gui()
         self.server.on_client_connect(self._connect)
@@ -129,9 +132,12 @@ class Viewer:
         self.server.initial_camera.fov = float(2 * torch.atan(cams.height[first].double() / (2 * cams.fy[first].double())))
 
     def _add_thumbnails(self) -> None:
+        self._first_frame.wait(timeout=None if self.render is not None else 0.0)
         images = self.scene.images
         for name, handle in list(self.frustum_handles.items()):
             i = int(name.split("/")[1])
+            if self._stopped:
+                return
             if images.has(i):
                 try:
                     handle.image = content.thumbnail(images.load(i))
@@ -213,6 +219,7 @@ class Viewer:
 
     def _show(self, client, frame: Frame) -> None:
         h, w = frame.image.shape[:2]
+        self._first_frame.set()
         final = frame.level == frame.levels
         client.scene.set_background_image(frame.image, format="png" if final else "jpeg", jpeg_quality=85)
         rays_s = w * h / max(frame.seconds, 1e-9)
@@ -303,6 +310,8 @@ class Viewer:
         self.wake()
 
     def stop(self) -> None:
+        self._stopped = True
+        self._first_frame.set()
         self.server.stop()
 
 
