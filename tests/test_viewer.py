@@ -111,6 +111,11 @@ def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     renderer.request(ViewRequest(eye.numpy(), 0.5, 1.0, time.perf_counter()))
     renderer.step()
     assert [f.level for f in frames] == [0, 0]  # the second low frame came next, no refined frame of the first camera
+    _drain(renderer)
+    renderer.mode = "depth"
+    renderer.refresh()  # after a finished refinement: the same camera again, from its low frame
+    _drain(renderer)
+    assert [f.level for f in frames][-3:] == [0, 1, 2] and frames[-1].image.shape == frames[-4].image.shape
 
 
 def test_a_camera_path_renders_headless_as_the_viewer_renders_it(run, tmp_path):
@@ -151,14 +156,20 @@ def test_bad_camera_path_and_missing_input_are_one_line_errors(run, tmp_path, ca
 # ---------------------------------------------------------------- the server and the page
 
 
-def test_the_viewer_serves_its_page_on_a_free_port(synth):
+def test_the_viewer_serves_its_page_on_a_free_port(synth, tmp_path):
     _viser()
     from nerfpipe.viewer.server import Viewer
 
-    viewer = Viewer(load(synth), None, port=0, thumbnails=False)
+    import trimesh
+
+    mesh = tmp_path / "mesh" / "mesh.ply"
+    mesh.parent.mkdir()
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    viewer = Viewer(load(synth), None, port=0, mesh=content.find_mesh([tmp_path]), thumbnails=False)
     try:
         page = urllib.request.urlopen(viewer.url, timeout=30).read().decode()
         assert "<html" in page.lower() and viewer.server.get_port() > 0
+        assert set(viewer.layers) == {"/cameras", "/box", "/points", "/rays", "/mesh"}
     finally:
         viewer.stop()
 

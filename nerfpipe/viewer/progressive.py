@@ -140,6 +140,7 @@ class ProgressiveRenderer:
         """Measured speed (moving average), sets the low frame's size."""
         self._lock = threading.Lock()
         self._pending: "ViewRequest | None" = None
+        self._last: "ViewRequest | None" = None
         self._job: "dict | None" = None
 
     def request(self, req: ViewRequest) -> None:
@@ -150,8 +151,8 @@ class ProgressiveRenderer:
     def refresh(self) -> None:
         """Render the last camera again from the low frame (the model or the mode changed)."""
         with self._lock:
-            if self._pending is None and self._job is not None:
-                self._pending = replace(self._job["req"], stamp=time.perf_counter())
+            if self._pending is None and self._last is not None:
+                self._pending = replace(self._last, stamp=time.perf_counter())
 
     @property
     def busy(self) -> bool:
@@ -190,6 +191,7 @@ class ProgressiveRenderer:
         self.show(Frame(image, view, seconds, time.perf_counter() - req.stamp, level, len(self._levels(req))))
 
     def _low(self, req: ViewRequest) -> None:
+        self._last = req
         w, h = size_for(req.aspect, self.low_seconds * self.rays_per_second, self.max_size)
         view, seconds = self._timed(pinhole_camera(req.world_from_cam, req.fov, w, h))
         self._emit(view, seconds, req, 0)

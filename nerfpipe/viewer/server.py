@@ -114,12 +114,15 @@ class Viewer:
             self.layers["/rays"] = [s.add_line_segments("/rays/lines", lines, (250, 200, 40), thickness=0.0005 * diagonal),
                                     s.add_point_cloud("/rays/samples", samples, (250, 80, 40), point_size=0.006 * diagonal)]  # fmt: skip
         if mesh is not None:
+            import trimesh
+
             v, f, colours = content.read_mesh(mesh, scene)
-            colour = (200, 200, 200) if colours is None else tuple(int(c) for c in colours.mean(0))
-            self.layers["/mesh"] = [s.add_mesh_simple("/mesh", v, f, color=colour)]
+            shown = trimesh.Trimesh(v, f, vertex_colors=colours, process=False)
+            self.layers["/mesh"] = [s.add_mesh_trimesh("/mesh", shown) if colours is not None else s.add_mesh_simple("/mesh", v, f, color=(200, 200, 200))]
         self._set_initial_camera()
+        self._thumbnails = threading.Thread(target=self._add_thumbnails, name="nerfpipe-view-thumbnails", daemon=True)
         if thumbnails:
-            threading.Thread(target=self._add_thumbnails, name="nerfpipe-view-thumbnails", daemon=True).start()
+            self._thumbnails.start()
 
     def _set_initial_camera(self) -> None:
         train = self.scene.splits["train"]
@@ -312,6 +315,8 @@ class Viewer:
     def stop(self) -> None:
         self._stopped = True
         self._first_frame.set()
+        if self._thumbnails.is_alive():
+            self._thumbnails.join(timeout=10)
         self.server.stop()
 
 
