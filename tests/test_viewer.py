@@ -209,6 +209,8 @@ def test_in_headless_chromium_the_page_shows_the_cameras_and_the_live_render(run
         viewer.add_keyframe(Keyframe(viewer.keyframes[0].world_from_cam.clone(), 0.9, 1.0))
         saved = read_camera_path(viewer.save_path())
         assert len(saved.keyframes) == 2 and len(saved.cameras) == round(24 * 4.0)
+        viewer.clear_keyframes()
+        assert viewer.load_path() == 2 and viewer.path().cameras.world_from_cam.allclose(saved.cameras.world_from_cam, atol=1e-9)
         shot = browser.screenshot(tmp_path / "viewer.png")
         assert browser.outside_requests() == []
     finally:

@@ -184,11 +184,13 @@ class Viewer:
             self.path_cycle = gui.add_checkbox("Loop", initial_value=False)
             self.path_name = gui.add_text("File", initial_value=str(self.path_file))
             save = gui.add_button("Save path")
+            load = gui.add_button("Load path")
             self.preview = gui.add_slider("Preview frame", min=0, max=1, step=1, initial_value=0, disabled=True)
             self.path_status = gui.add_markdown("place keyframes from the current view")
         add.on_click(lambda e: self.add_keyframe_from(e.client))
         clear.on_click(lambda _: self.clear_keyframes())
         save.on_click(lambda _: self.save_path())
+        load.on_click(lambda _: self.load_path())
         self.preview.on_update(lambda e: self.preview_frame(int(e.target.value), e.client))
 
     # ---------------------------------------------------------------- live render
@@ -292,6 +294,26 @@ class Viewer:
         write_camera_path(target, path, self.scene.world_from_input.matrix())
         self.path_status.content = f"saved {len(path.cameras)} frames to `{target}`"
         return target
+
+    def load_path(self, file: "Path | None" = None) -> int:
+        """Replace the keyframes by those of a camera path file (default: the panel's); returns how many."""
+        from nerfpipe.camera_path import read_camera_path
+
+        target = Path(file) if file is not None else Path(self.path_name.value)
+        try:
+            path = read_camera_path(target)
+        except NerfpipeError as exc:
+            self.path_status.content = f"cannot load: {exc}"
+            return 0
+        self.clear_keyframes()
+        cams = path.cameras
+        self.path_width.value, self.path_height.value = int(cams.width[0]), int(cams.height[0])
+        self.path_fps.value, self.path_cycle.value = path.fps, path.is_cycle
+        self.path_seconds.value = len(cams) / path.fps
+        for key in path.keyframes:
+            self.add_keyframe(key)
+        self.path_status.content = f"loaded {len(path.keyframes)} keyframes from `{target}`"
+        return len(path.keyframes)
 
     def preview_frame(self, index: int, client) -> None:
         """Move a client's camera to frame ``index`` of the path and render that frame at the path's size."""
