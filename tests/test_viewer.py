@@ -118,6 +118,16 @@ def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     assert [f.level for f in frames][-3:] == [0, 1, 2] and frames[-1].image.shape == frames[-4].image.shape
 
 
+def test_a_failing_render_drops_the_camera_and_goes_on(caplog):
+    def broken(cams):
+        raise RuntimeError("out of memory")
+
+    renderer = ProgressiveRenderer(broken, lambda frame: None)
+    renderer.request(ViewRequest(np.eye(4), 0.8, 1.0, time.perf_counter()))
+    assert renderer.step() is False and not renderer.busy
+    assert "live render failed (RuntimeError: out of memory)" in caplog.text
+
+
 def test_a_camera_path_renders_headless_as_the_viewer_renders_it(run, tmp_path):
     """The goal: a path authored in the viewer, rendered by ``nerfpipe render --path``, gives the frames the
     viewer showed for it (strip by strip, through the same renderer), within 1/255."""

@@ -18,6 +18,7 @@ height cut to the strip (:func:`strip_camera`), rendered by the one renderer
 that camera, strip by strip.
 """
 
+import logging
 import math
 import threading
 import time
@@ -159,7 +160,18 @@ class ProgressiveRenderer:
         return self._pending is not None or self._job is not None
 
     def step(self) -> bool:
-        """Do one unit of work (a low frame or a strip); False when there was none."""
+        """Do one unit of work (a low frame or a strip); False when there was none.
+
+        A render that fails (out of memory, a model that cannot render this camera) drops the camera and
+        is logged: the viewer, and the training it may watch, go on."""
+        try:
+            return self._step()
+        except Exception as exc:  # noqa: BLE001 - see the docstring
+            self._job = None
+            logging.getLogger(__name__).warning("live render failed (%s: %s)", type(exc).__name__, exc)
+            return False
+
+    def _step(self) -> bool:
         with self._lock:
             req, self._pending = self._pending, None
         if req is not None:
