@@ -8,9 +8,11 @@
 3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
    each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
    the largest pixel difference (of 255) between the two.
-4. **Training overhead** (``--train DATASET``): ``nerfpipe train DATASET --iters N`` alone and with
-   ``--view`` and a browser watching (its camera turned every few seconds), alternately ``--repeats``
-   times each: iterations per training second of each.
+4. **Training overhead** (``--train DATASET``): ``nerfpipe train DATASET --iters N --threads 1 --clock cpu``
+   alone and with ``--view`` and a browser watching (its camera turned every few seconds), alternately
+   ``--repeats`` times each: iterations per training second of each. The CPU clock (process CPU
+   seconds: training, the live render between steps and viser's threads, not the browser's process)
+   keeps the figure steady on a shared machine, where wall-clock rates of one command vary twofold.
 
 Usage::
 
@@ -107,6 +109,17 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
         browser.open(viewer.url)
         browser.wait_for(BACKGROUND_JS, timeout=60.0)
         client = next(iter(viewer.server.get_clients().values()))
+        browser.evaluate(WATCH_BACKGROUND_JS)
+        split = []  # where a move's latency goes: browser -> server, render, server -> page shown
+        for k in range(3):
+            _quiet(browser)
+            n = len(viewer.frames)
+            t = browser.evaluate(ROTATE_JS % (0.2, 0.0))
+            shown = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t})[0] || null", timeout=30.0)
+            low = next(f for f in viewer.frames[n:] if f["level"] == 0)
+            sent = low["shown"] - t / 1000
+            split.append({"to_server_s": sent - low["latency"], "request_to_frame_s": low["latency"], "render_s": low["seconds"],
+                          "to_page_s": shown[0] / 1000 - low["shown"], "total_s": (shown[0] - t) / 1000, "size": [low["width"], low["height"]]})  # fmt: skip
         for turn in (0.0, 0.5):
             browser.evaluate(ROTATE_JS % (turn, 0.0))
             time.sleep(1.0)
@@ -128,11 +141,12 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
     for k in range(frames):
         headless = iio.imread(run / "renders" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
         diffs.append(int(np.abs(headless - viewer.preview_frames[k].astype(int)).max()))
-    return {"path_file": str(file), "frames": frames, "size": list(size), "max_pixel_difference": diffs}
+    return {"path_file": str(file), "frames": frames, "size": list(size), "max_pixel_difference": diffs, "move_latency_split": split}
 
 
 def _train(dataset: Path, out: Path, iters: int, view: bool, tmp: Path) -> float:
-    args = [*PY, "train", str(dataset), "--out", str(out), "--iters", str(iters), "--video-frames", "0", "--eval-every", "0", "--final-eval-views", "1", "--eval-scale", "0.25"]
+    args = [*PY, "train", str(dataset), "--out", str(out), "--iters", str(iters), "--video-frames", "0", "--eval-every", "0", "--final-eval-views", "1", "--eval-scale", "0.25",
+            "--threads", "1", "--clock", "cpu"]
     if view:
         args += ["--view", "--view-port", "7118"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env())
