@@ -116,6 +116,9 @@ def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     renderer.refresh()  # after a finished refinement: the same camera again, from its low frame
     _drain(renderer)
     assert [f.level for f in frames][-3:] == [0, 1, 2] and frames[-1].image.shape == frames[-4].image.shape
+    renderer.refresh(again=True)  # the field changed while training: only the sharpest level again
+    _drain(renderer)
+    assert (frames[-1].level, frames[-1].levels) == (1, 1) and frames[-1].image.shape == frames[-2].image.shape
 
 
 def test_a_failing_render_drops_the_camera_and_goes_on(caplog):

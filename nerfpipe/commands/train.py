@@ -59,7 +59,7 @@ def train(
         threads: CPU threads for torch (default: torch's choice).
         resume: continue from the run folder's checkpoint.
         view: watch the training in the browser (nerfpipe view's viewer: live render and PSNR curves,
-            at most 5 % of the training time; needs nerfpipe[viewer]).
+            at most 4 % of the training time; needs nerfpipe[viewer]).
         view_port: port of the viewer (0: any free one).
     """
     import dataclasses

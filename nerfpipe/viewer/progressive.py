@@ -46,6 +46,8 @@ class ViewRequest:
     """``time.perf_counter()`` when the camera moved."""
     size: "tuple[int, int] | None" = None
     """Render exactly ``(width, height)`` after the low frame (a camera path's frame), instead of the levels."""
+    again: bool = False
+    """The same camera once more (the field changed): straight to the sharpest level, no low frame."""
 
 
 @dataclass
@@ -149,11 +151,12 @@ class ProgressiveRenderer:
         with self._lock:
             self._pending = req
 
-    def refresh(self) -> None:
-        """Render the last camera again from the low frame (the model or the mode changed)."""
+    def refresh(self, again: bool = False) -> None:
+        """Render the last camera again: from its low frame (the mode or size changed), or with ``again``
+        only at its sharpest level, strip by strip (the field changed while training: no flash of a blurred frame)."""
         with self._lock:
             if self._pending is None and self._last is not None:
-                self._pending = replace(self._last, stamp=time.perf_counter())
+                self._pending = replace(self._last, stamp=time.perf_counter(), again=again)
 
     @property
     def busy(self) -> bool:
@@ -174,7 +177,10 @@ class ProgressiveRenderer:
     def _step(self) -> bool:
         with self._lock:
             req, self._pending = self._pending, None
-        if req is not None:
+        if req is not None and req.again:
+            self._job = {"req": req, "level": 0, "parts": [], "row": 0, "seconds": 0.0, "levels": self._levels(req)[-1:]}
+            self._next_level()
+        elif req is not None:
             self._low(req)
             return True
         if self._job is None:
@@ -198,15 +204,15 @@ class ProgressiveRenderer:
             return [req.size]
         return [level_size(req.aspect, f, self.max_size) for f in self.levels]
 
-    def _emit(self, view: RenderedView, seconds: float, req: ViewRequest, level: int) -> None:
+    def _emit(self, view: RenderedView, seconds: float, req: ViewRequest, level: int, levels: int) -> None:
         image = to_uint8(view.rgb) if self.mode == "rgb" else depth_image(view)
-        self.show(Frame(image, view, seconds, time.perf_counter() - req.stamp, level, len(self._levels(req))))
+        self.show(Frame(image, view, seconds, time.perf_counter() - req.stamp, level, levels))
 
     def _low(self, req: ViewRequest) -> None:
         self._last = req
         w, h = size_for(req.aspect, self.low_seconds * self.rays_per_second, self.max_size)
         view, seconds = self._timed(pinhole_camera(req.world_from_cam, req.fov, w, h))
-        self._emit(view, seconds, req, 0)
+        self._emit(view, seconds, req, 0, len(self._levels(req)))
         self._job = {"req": req, "level": 0, "parts": [], "row": 0, "seconds": 0.0, "levels": self._levels(req)}
         self._next_level()
 
@@ -232,7 +238,7 @@ class ProgressiveRenderer:
         job["row"] += rows
         job["seconds"] += seconds
         if job["row"] >= h:
-            self._emit(join_strips(job["parts"]), job["seconds"], job["req"], job["level"])
+            self._emit(join_strips(job["parts"]), job["seconds"], job["req"], job["level"], len(job["levels"]))
             self._next_level()
 
 

@@ -29,7 +29,7 @@ class TrainingView:
         plot_every: seconds between refreshes of the curves.
     """
 
-    def __init__(self, trainer, viewer, share: float = 0.05, plot_every: float = 2.0) -> None:
+    def __init__(self, trainer, viewer, share: float = 0.04, plot_every: float = 2.0) -> None:
         self.trainer, self.viewer, self.share, self.plot_every = trainer, viewer, share, plot_every
         self.render_seconds = 0.0
         """Time spent rendering in the training thread."""
@@ -44,6 +44,7 @@ class TrainingView:
                 title="PSNR (dB)", aspect=1.6,
             )  # fmt: skip
         trainer.hooks.setdefault(Callback.AFTER_TRAIN_ITERATION, []).append(self.after_step)
+        trainer.hooks.setdefault(Callback.AFTER_TRAIN, []).append(self.after_train)
 
     def after_step(self, step: int) -> None:
         now = time.perf_counter()
@@ -54,6 +55,11 @@ class TrainingView:
         if now - self._last_plot >= self.plot_every:
             self._last_plot = now
             self.update_panel(step, now - self._start)
+
+    def after_train(self, step: int) -> None:
+        elapsed = time.perf_counter() - self._start if self._start is not None else 0.0
+        share = self.render_seconds / elapsed if elapsed > 0 else 0.0
+        print(f"nerfpipe: the live view rendered {self.render_seconds:.1f} s of the {elapsed:.1f} s of training ({100 * share:.1f} %)", flush=True)
 
     def _render_some(self, now: float) -> None:
         """Units of render work until the time spent reaches ``share`` of the elapsed (one unit at least)."""
@@ -84,10 +90,10 @@ class TrainingView:
         self.text.content = f"step **{step}**, {its:.1f} it/s{last_val}; live render {100 * share:.1f} % of the time"
         for r in self.viewer.renderers():
             if not r.busy:
-                r.refresh()  # the field moved on: show it again
+                r.refresh(again=True)  # the field moved on: show it again
 
 
-def watch(trainer, host: str = "127.0.0.1", port: int = 7007, share: float = 0.05) -> TrainingView:
+def watch(trainer, host: str = "127.0.0.1", port: int = 7007, share: float = 0.04) -> TrainingView:
     """Start a viewer of a trainer's scene and model and attach it (prints the URL)."""
     from nerfpipe.pixel_sampler import background_colors
     from nerfpipe.viewer.server import Viewer
