@@ -69,7 +69,8 @@ class Chromium:
             port = self._devtools_port(timeout)
             pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=timeout).read())
             page = next(p for p in pages if p["type"] == "page")
-            self._ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout)
+            # no keepalive pings: on a loaded machine a late pong would close a connection that is fine
+            self._ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout, ping_interval=None)
             self.call("Network.enable")
             self.call("Page.enable")
             self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)

@@ -28,6 +28,9 @@ from nerfpipe.viewer import content
 from nerfpipe.viewer.progressive import Frame, ProgressiveRenderer, ViewRequest
 
 VIEWER_DEPENDENCIES = (("viser", "viewer"),)
+PREVIEW_HOLD = 2.0
+"""Seconds after a path preview moved a browser's camera during which its camera updates are that move
+(the browser's camera glides to a new pose over a few frames), not the user's."""
 
 
 def camera_matrix(wxyz, position) -> np.ndarray:
@@ -74,8 +77,8 @@ class Viewer:
         self.keyframes: "list[Keyframe]" = []
         self.wake: "Callable[[], None]" = lambda: None
         """Called when a renderer got work (the render thread's ``wake``)."""
-        self._preview: "dict[int, np.ndarray]" = {}
-        """Per client, the pose a path preview put its camera at."""
+        self._preview: "dict[int, tuple[np.ndarray, float]]" = {}
+        """Per client, the pose a path preview put its camera at, and until when its moves are the browser getting there."""
         self._preview_index: "dict[int, int]" = {}
         """Per client, the path frame it previews."""
         self.layers: "dict[str, list]" = {}
@@ -208,9 +211,10 @@ class Viewer:
     def _camera_moved(self, client, camera) -> None:
         m = camera_matrix(camera.wxyz, camera.position)
         preview = self._preview.get(client.client_id)
-        if preview is not None and np.abs(preview - m).max() < 1e-5:
-            return  # the browser reporting the pose a preview set
+        if preview is not None and (np.abs(preview[0] - m).max() < 1e-5 or time.monotonic() < preview[1]):
+            return  # the browser moving to (and reporting) the pose a preview set
         self._preview.pop(client.client_id, None)
+        self._preview_index.pop(client.client_id, None)
         renderer = self.renderer_of.get(client.client_id)
         if renderer is not None:
             renderer.request(ViewRequest(m, float(camera.fov), float(camera.aspect), time.perf_counter()))
@@ -325,7 +329,7 @@ class Viewer:
         m = cam.world_from_cam.double().numpy()
         fov = float(2 * torch.atan(cam.height.double() / (2 * cam.fy.double())))
         self._preview_index[client.client_id] = index
-        self._preview[client.client_id] = m
+        self._preview[client.client_id] = (m, time.monotonic() + PREVIEW_HOLD)
         with client.atomic():
             client.camera.wxyz = matrix_to_wxyz(torch.as_tensor(m[:3, :3])).numpy()
             client.camera.position = m[:3, 3]
