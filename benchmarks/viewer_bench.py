@@ -3,8 +3,10 @@
 1. **Start**: ``nerfpipe view RUN`` launched as a process, to the page showing every camera frustum and
    the first live render (seconds from the launch).
 2. **Move latency**: the browser's camera turned (``cameraControl.rotate``), to the page showing the
-   first new render (the low frame), timed by the page's own clock (ms since the epoch, on both
-   sides); ``--moves`` times, each after the previous refinement finished.
+   low frame of the new view (the first frame under 256 pixels on its longer side after the move),
+   timed by the page's own clock (ms since the epoch, on both sides); ``--moves`` times, each after
+   the page's render stayed unchanged for 1.5 s. Then, in-process, where it goes: browser to server,
+   the server's low frame, server to the page.
 3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
    each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
    the largest pixel difference (of 255) between the two.
@@ -77,7 +79,9 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
         for k in range(moves):
             _quiet(browser)
             t = browser.evaluate(ROTATE_JS % (0.25 if k % 2 == 0 else -0.2, 0.03))
-            first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t})[0] || null", timeout=30.0)
+            # the low frame: smaller than the first refinement (half of --max-size 512 on the longer side); a
+            # refinement of the previous view may still land after the move
+            first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) < 256)[0] || null", timeout=30.0)
             latencies.append((first[0] - t) / 1000)
             sizes.append(first[1:])
         _quiet(browser)
@@ -90,6 +94,19 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
     return {"url_printed_s": url_seconds, "frustums_shown_s": frustum_seconds, "first_render_shown_s": render_seconds, "cameras": num_cameras,
             "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "outside_requests": outside,
             "screenshot": str(tmp / "view.png")}  # fmt: skip
+
+
+def _first_of_view(browser: Chromium, viewer, n: int, t: int, timeout: float = 30.0) -> list:
+    """The page's first render after ``t`` of a size the server made for the new view (its low frame,
+    or a refinement when a loaded page skipped the low frame)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        sizes = {(f["width"], f["height"]) for f in viewer.frames[n:]}
+        for entry in browser.evaluate(f"window.__bgLog.filter(e => e[0] > {t})") or []:
+            if (entry[1], entry[2]) in sizes:
+                return entry
+        time.sleep(0.02)
+    raise TimeoutError("the page showed no render of the new view")
 
 
 def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), frames: int = 4) -> dict:
@@ -115,8 +132,11 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
             _quiet(browser)
             n = len(viewer.frames)
             t = browser.evaluate(ROTATE_JS % (0.2, 0.0))
-            shown = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t})[0] || null", timeout=30.0)
+            deadline = time.monotonic() + 30
+            while not any(f["level"] == 0 for f in viewer.frames[n:]) and time.monotonic() < deadline:
+                time.sleep(0.01)
             low = next(f for f in viewer.frames[n:] if f["level"] == 0)
+            shown = _first_of_view(browser, viewer, n, t)
             sent = low["shown"] - t / 1000
             split.append({"to_server_s": sent - low["latency"], "request_to_frame_s": low["latency"], "render_s": low["seconds"],
                           "to_page_s": shown[0] / 1000 - low["shown"], "total_s": (shown[0] - t) / 1000, "size": [low["width"], low["height"]]})  # fmt: skip
