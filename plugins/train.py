@@ -114,11 +114,16 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
         shutil.rmtree(out)
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
+    watcher = None
     if config.view:
         from nerfpipe.viewer.training import watch
 
-        watch(trainer, port=config.view_port)
-    metrics = trainer.train()
+        watcher = watch(trainer, port=config.view_port)
+    try:
+        metrics = trainer.train()
+    finally:
+        if watcher is not None:
+            watcher.viewer.stop()  # the page closes with the training
     return {"model": trainer.model.eval(), "metrics": metrics}
 
 

@@ -268,3 +268,15 @@ def test_a_watched_training_trains_as_an_unwatched_one(synth, tmp_path):
     assert frames and view.render_seconds > 0
     for (name, a), b in zip(plain.model.state_dict().items(), watched.model.state_dict().values()):
         torch.testing.assert_close(a, b, msg=name)
+
+
+def test_train_view_on_the_command_line_serves_and_closes(synth, tmp_path, capsys):
+    _viser()
+    args = ["train", str(synth), "--model", "vanilla", "--out", str(tmp_path / "run"), "--iters", "2", "--rays-per-step", "32",
+            "--num-samples", "8", "--video-frames", "0", "--eval-every", "0", "--view", "--view-port", "0"]  # fmt: skip
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    url = out.split("watching the training at ")[1].split()[0]
+    assert "the live view rendered" in out
+    with pytest.raises(OSError):  # the page closed with the training
+        urllib.request.urlopen(url, timeout=5)

@@ -88,11 +88,16 @@ def train(
     require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if view else ()))  # before the dataset is read
     scene = load(path)
     trainer = Trainer(cfg, scene, model, model_cfg, out)
+    watcher = None
     if view and trainer.world.writer:  # rank 0 of a torchrun group shows it
         from nerfpipe.viewer.training import watch
 
-        watch(trainer, port=view_port)
-    metrics = trainer.train()
+        watcher = watch(trainer, port=view_port)
+    try:
+        metrics = trainer.train()
+    finally:
+        if watcher is not None:
+            watcher.viewer.stop()  # the page closes with the training
     if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
         return 0
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
