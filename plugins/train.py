@@ -115,7 +115,7 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
     watcher = None
-    if config.view:
+    if config.view and trainer.world.writer:  # rank 0 of a torchrun group shows it
         from nerfpipe.viewer.training import watch
 
         watcher = watch(trainer, port=config.view_port)
