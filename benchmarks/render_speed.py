@@ -145,7 +145,7 @@ def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> 
 
 
 def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedConfig) -> dict:
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe.checkpoint import CHECKPOINT, load_checkpoint
     from nerfpipe.models.registry import get_model

@@ -62,7 +62,7 @@ def model_config(preset: str, options: "tuple[str, ...]"):
 
 
 def main(cfg: StepsConfig) -> "list[dict]":
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation, runtime
     from nerfpipe.trainer import Trainer, TrainerConfig

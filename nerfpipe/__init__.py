@@ -4,7 +4,7 @@ Layers (lower never imports upper):
 
 1. ``nerfpipe.functional``: pure tensor functions (distortion, rays, sampling, volume rendering);
 2. containers and modules: :class:`Cameras`, :class:`RayBundle`, :class:`SceneData`, fields;
-3. orchestration: ``nerfpipe.commands``, stages in ``plugins/``, the CLI.
+3. orchestration: ``nerfpipe.commands``, stages in ``nerfpipe.plugins``, the CLI.
 
 Importing nerfpipe changes nothing in the host process. The process settings the CLI makes
 (OpenMP waiting, glibc's allocator: :mod:`nerfpipe.runtime`) are one explicit call,

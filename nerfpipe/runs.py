@@ -88,7 +88,7 @@ def load_run(run_dir: Path, device: str = "cpu"):
     Run folders are passed around: a malformed ``config.json``, a checkpoint of another model or one
     with tensors missing or of other shapes is a :class:`NerfpipeError` naming the file.
     """
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe.models.base import SceneInfo  # noqa: F401  (documented return types)
     from nerfpipe.models.registry import get_model

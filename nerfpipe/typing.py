@@ -12,7 +12,7 @@ Every shape annotation in nerfpipe uses these axis names:
 * ``C``            channels (3 for RGB, 4 for RGBA)
 
 Shapes are checked at runtime in the test suite by
-``pytest --jaxtyping-packages=nerfpipe,data_adapters,beartype.beartype``.
+``pytest --jaxtyping-packages=nerfpipe,beartype.beartype``.
 """
 
 from jaxtyping import Bool, Float, Int, UInt8, Shaped

@@ -1,6 +1,6 @@
 """Small synthetic COLMAP scenes for tests, made with ``pycolmap.synthesize_dataset``."""
 
-import zlib  # noqa: F401  (system zlib before pycolmap's, see data_adapters.colmap._open)
+import zlib  # noqa: F401  (system zlib before pycolmap's, see nerfpipe.data_adapters.colmap._open)
 from pathlib import Path
 
 import imageio.v3 as iio

@@ -8,9 +8,9 @@ import torch
 
 pycolmap = pytest.importorskip("pycolmap")
 
-import data_adapters  # noqa: E402
+from nerfpipe import data_adapters  # noqa: E402
 from colmap_synth import PARAMS, make_scene, synthesize, write_scene  # noqa: E402
-from data_adapters import colmap  # noqa: E402
+from nerfpipe.data_adapters import colmap  # noqa: E402
 from nerfpipe.errors import NerfpipeError  # noqa: E402
 from nerfpipe.functional.distortion import Distortion  # noqa: E402
 from nerfpipe.scene import holdout_split  # noqa: E402

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-import data_adapters
+from nerfpipe import data_adapters
 from nerfpipe.cameras import opengl_to_opencv
 from nerfpipe.errors import NerfpipeError
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-import data_adapters
+from nerfpipe import data_adapters
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.functional.distortion import Distortion
 from nerfpipe.normalize import TARGET_CAMERA_DISTANCE

@@ -25,7 +25,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from colmap_synth import make_scene  # noqa: E402
 
-PACKAGE_DIRS = ("/nerfpipe/", "/data_adapters/", "/plugins/", "/benchmarks/")
+PACKAGE_DIRS = ("/nerfpipe/", "/benchmarks/")
 """Warnings raised from these count as extra stderr lines (library deprecations under pytest do not)."""
 SECONDS = 30.0
 """A case must be refused within this (generous for a shared 2-core machine; most take well under 1 s)."""

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from benchmarks.bench_nerf import BenchConfig, write_table
+from nerfpipe.bench import BenchConfig, write_table
 
 
 def row(preset, budget, psnr, mb):
@@ -18,7 +18,7 @@ def row(preset, budget, psnr, mb):
 
 def test_write_table_outputs(tmp_path):
     rows = [row("vanilla", 20, 12.0, 2.0), row("vanilla", 60, 14.0, 2.0), row("fast-small", 20, 22.0, 45.0), row("fast-small", 60, 26.5, 45.0)]
-    write_table(rows, tmp_path, "lego", BenchConfig(budgets=(20, 60)))
+    write_table(rows, tmp_path, "lego", BenchConfig(budgets=(20.0, 60.0)))
     table = json.loads((tmp_path / "table.json").read_text())
     assert [r["val_psnr"] for r in table["rows"]] == [12.0, 14.0, 22.0, 26.5]
     md = (tmp_path / "table.md").read_text().splitlines()
@@ -39,7 +39,7 @@ def tiny_lego(scene_path, tmp_path):
 
 
 def test_bench_run_scores_each_budget(scene_path, tmp_path):
-    from benchmarks.bench_nerf import run
+    from nerfpipe.bench import run
 
     npz = tiny_lego(scene_path, tmp_path)
     rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads()))
@@ -51,7 +51,7 @@ def test_bench_run_scores_each_budget(scene_path, tmp_path):
 def test_preset_overrides_reach_the_model_config():
     import pytest
 
-    from benchmarks.bench_nerf import resolve_preset
+    from nerfpipe.bench import resolve_preset
     from nerfpipe.errors import NerfpipeError
 
     name, cfg, over = resolve_preset("fast-small:distortion_weight=0.001,tv_weight=1e-5,tighten_step=128")

@@ -9,7 +9,7 @@ import torch
 pytest.importorskip("kornia")
 pycolmap = pytest.importorskip("pycolmap")
 
-import data_adapters  # noqa: E402
+from nerfpipe import data_adapters  # noqa: E402
 from colmap_synth import make_scene  # noqa: E402
 from nerfpipe import consistency  # noqa: E402
 from nerfpipe.cameras import opengl_to_opencv  # noqa: E402

@@ -69,7 +69,7 @@ def test_mesh_metrics_against_the_ground_truth(tiny_run):
 def test_train_stage_takes_its_share_of_the_pipeline_budget(tmp_path):
     from dataclasses import replace
 
-    from plugins.train import TrainStageConfig, _trainer_config
+    from nerfpipe.plugins.train import TrainStageConfig, _trainer_config
     from nerfpipe.stages import StageContext
 
     stage = TrainStageConfig()

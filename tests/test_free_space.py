@@ -5,7 +5,7 @@ figure reaches eval-mesh and the mesh stage's references."""
 import numpy as np
 import pytest
 
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.metrics import free_space_violation
 from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines

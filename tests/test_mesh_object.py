@@ -110,7 +110,7 @@ def test_resolution_for_budget_steps_down_with_the_time_left():
 
 
 def test_mesh_stage_lowers_the_resolution_under_a_short_budget():
-    from plugins.mesh import budgeted
+    from nerfpipe.plugins.mesh import budgeted
 
     cfg = MeshConfig(method="mc", resolution=256)
     assert budgeted(cfg, None).resolution == 256

@@ -167,7 +167,7 @@ def test_pipeline_meshes_the_ball_not_the_table():
 def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):
     """Real cameras and sparse points: the white table under the mouse carries (almost) no sparse point,
     so the points alone give no support plane; the same scene with points on a table under the mouse does."""
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe.mesh.metrics import robust_diagonal
     from nerfpipe.mesh.trained import crop_to_points

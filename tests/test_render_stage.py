@@ -2,7 +2,7 @@
 
 import pytest
 
-from plugins.render import RenderConfig, frame_size, plan_frames
+from nerfpipe.plugins.render import RenderConfig, frame_size, plan_frames
 
 
 def test_no_budget_or_enough_time_keeps_the_configured_frames():

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.vanilla import VanillaConfig
 from nerfpipe.runlock import LOCK_FILE, holder, run_lock

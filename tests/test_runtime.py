@@ -99,7 +99,7 @@ environ, threads = dict(os.environ), torch.get_num_threads()
 torch.manual_seed(1234)  # the host's own stream: a library must not move it
 host_rng = torch.get_rng_state()
 import nerfpipe.runtime as r
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.models.base import Callback
 from nerfpipe.models.fast import FastConfig
 from nerfpipe.trainer import Trainer, TrainerConfig

@@ -64,8 +64,8 @@ def test_another_pipelines_reconstruction_is_handed_over(photos, tmp_path):
     import imageio.v3 as iio
     import pycolmap
 
-    import data_adapters
-    from plugins.sfm import prepare_images
+    from nerfpipe import data_adapters
+    from nerfpipe.plugins.sfm import prepare_images
 
     images = tmp_path / "small"
     prepare_images(sorted((photos / "images").iterdir()), images, MAX_SIZE)

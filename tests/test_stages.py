@@ -237,7 +237,7 @@ def test_run_folder_of_another_input_is_refused(tmp_path):
 
 
 def input_frame(scene):
-    from plugins.export import input_frame_cameras
+    from nerfpipe.plugins.export import input_frame_cameras
 
     return input_frame_cameras(scene)
 
@@ -269,7 +269,7 @@ def test_builtin_chain_on_colmap(mouse_run, scene_path):
 def test_export_reads_back_as_the_same_cameras(mouse_run):
     import open3d as o3d
 
-    import data_adapters
+    from nerfpipe import data_adapters
 
     scene = mouse_run["scene"]
     again = data_adapters.load(mouse_run["export/transforms.json"])

@@ -126,7 +126,7 @@ def test_colmap_model_round_trips_through_pycolmap(written):
 
 def test_colmap_tracks_are_the_generator_visibility(written):
     """The adapter reads back exactly the (point, view) pairs the generator found unoccluded, at their pixels."""
-    import data_adapters
+    from nerfpipe import data_adapters
 
     result = written["colmap"]
     cfg = SynthConfig(layout="colmap", views=10, width=40, height=32, num_points=600)  # the fixture's
@@ -175,7 +175,7 @@ def test_composite_parts_are_disjoint():
 
 @pytest.mark.parametrize("layout", ["colmap", "blender"])
 def test_adapters_read_the_generator_cameras(written, layout):
-    import data_adapters
+    from nerfpipe import data_adapters
 
     result = written[layout]
     scene = data_adapters.load(result.path)

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.cli import main
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.fields.vanilla import VanillaFieldConfig

@@ -138,7 +138,7 @@ def test_appearance_absorbs_a_per_image_exposure():
 
 def test_track_rays_pass_through_their_points(scene_path):
     """Rays through COLMAP keypoints of colmap_mouse pass by their 3D points at the reprojection error."""
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.pixel_sampler import PixelSampler
 
     scene = load(scene_path("colmap_mouse"))

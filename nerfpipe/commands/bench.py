@@ -33,7 +33,7 @@ def bench(
         seed: random seed.
         device: torch device.
     """
-    from benchmarks.bench_nerf import BenchConfig, run
+    from nerfpipe.bench import BenchConfig, run
 
     cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
                       threads=threads, clock=clock, seed=seed, device=device, rays_per_step=rays_per_step)

@@ -20,7 +20,7 @@ def check(path: DatasetPath, json: bool = False, samples: int = 16, seed: int = 
 
     import torch
 
-    import data_adapters
+    from nerfpipe import data_adapters
     from nerfpipe.commands.info import print_table
     from nerfpipe.consistency import check_scene
 

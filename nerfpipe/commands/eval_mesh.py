@@ -65,7 +65,7 @@ def _against_mesh(pred, ref_mesh, threshold, samples) -> dict:
 
 
 def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.errors import NerfpipeError
     from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
 

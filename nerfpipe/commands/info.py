@@ -69,7 +69,7 @@ def info(path: DatasetPath, json: bool = False) -> int:
     """
     import json as _json
 
-    import data_adapters
+    from nerfpipe import data_adapters
 
     summary = summarize(data_adapters.load(path))
     if json:

@@ -271,7 +271,7 @@ def list_stages() -> int:
     """List the installed plugins: stages, data adapters and models; broken ones are reported and skipped."""
     from rich.table import Table
 
-    from data_adapters import adapters
+    from nerfpipe.data_adapters import adapters
     from nerfpipe.models.registry import models
 
     console = _console()

@@ -64,7 +64,7 @@ def train(
     """
     import dataclasses
 
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all

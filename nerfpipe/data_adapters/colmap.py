@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data_adapters._common import check_focal
+from nerfpipe.data_adapters._common import check_focal
 from nerfpipe.cameras import Cameras, invert_rigid
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion

@@ -63,7 +63,7 @@ def photo_folder(path: "Path | None") -> "Path | None":
 
 def applies(ctx: StageContext) -> bool:
     """Photos, and nothing an adapter can read (nor an in-memory reconstruction)."""
-    import data_adapters
+    from nerfpipe import data_adapters
 
     if "reconstruction" in ctx.cache or photo_folder(ctx.source) is None:
         return False

@@ -1,6 +1,6 @@
 """Speed against error of the NeRF models: each preset trained once, scored at several time budgets.
 
-Run: ``nerfpipe bench PATH --out DIR --budgets 20 60 600`` (or ``python -m benchmarks.bench_nerf``).
+Run: ``nerfpipe bench PATH --out DIR --budgets 20 60 600`` (or ``python -m nerfpipe.bench``).
 Every preset (the classic ``vanilla`` and the ``fast`` field at several sizes) trains in one run;
 when its training seconds pass a budget, the model as it is then is scored on the validation views
 (render time excluded from the training seconds) and training goes on to the next budget.
@@ -221,7 +221,7 @@ def plot(rows: "list[dict]", path: Path, title: str) -> None:
 def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
     """Benchmark every preset of ``cfg`` on the dataset at ``path``; returns the table rows."""
     import torch
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation
     from nerfpipe.errors import require_all

@@ -97,7 +97,7 @@ def input_path(ctx: StageContext) -> "tuple[Path, str | None]":
 
 
 def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
-    import data_adapters
+    from nerfpipe import data_adapters
 
     path, fmt = input_path(ctx)
     fmt = config.format or fmt
@@ -111,7 +111,7 @@ def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
 def restore(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
     """Reload the scene recorded in ``scene.json``: the run's own input, or a folder inside the run
     (``input``, ``sfm``); a record naming anything else is refused (run folders are passed around)."""
-    import data_adapters
+    from nerfpipe import data_adapters
 
     file = ctx.path(SCENE_JSON)
     try:

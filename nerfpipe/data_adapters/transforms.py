@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data_adapters._common import check_focal, check_world_from_cam, synthetic_bounds
+from nerfpipe.data_adapters._common import check_focal, check_world_from_cam, synthetic_bounds
 from nerfpipe.cameras import Cameras, opengl_to_opencv
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
