@@ -6,7 +6,6 @@ and scores PSNR and SSIM (kornia.metrics, 11-px Gaussian window) against the gro
 composited on the evaluation background.
 """
 
-import math
 from pathlib import Path
 
 import torch
@@ -14,6 +13,7 @@ import torch.nn.functional as F
 
 from nerfpipe.checkpoint import CHECKPOINT
 from nerfpipe.errors import require
+from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.pixel_sampler import background_colors, composite_pixels
 from nerfpipe.render import capped_size, render_cameras, resize_cameras, to_uint8
 from nerfpipe.runs import write_json
@@ -66,8 +66,7 @@ def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     m = torch.linalg.lstsq(a, y).solution  # [4, 3]
     right = pred[:, w:].reshape(-1, 3).double()
     mapped = (torch.cat([right, torch.ones_like(right[:, :1])], dim=-1) @ m).clamp(0, 1)
-    mse = float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean())
-    return -10.0 * math.log10(max(mse, 1e-12))
+    return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
 
 
 VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")

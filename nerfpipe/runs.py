@@ -5,47 +5,15 @@
 :func:`load_run` rebuilds the scene (through ``data_adapters.load``) and the trained model.
 """
 
-import dataclasses
 import json
-import types
-import typing
 from pathlib import Path
 
 from nerfpipe.atomic import write_json  # noqa: F401 (write_json is part of this module's API)
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint
+from nerfpipe.configs import from_dict, to_dict  # noqa: F401 (to_dict is part of this module's API)
 from nerfpipe.errors import NerfpipeError
 
 CONFIG = "config.json"
-
-
-def to_dict(obj) -> dict:
-    """A (nested) config dataclass as JSON-friendly data."""
-    return json.loads(json.dumps(dataclasses.asdict(obj), default=str))
-
-
-def from_dict(cls: type, data: dict):
-    """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys are an error."""
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise NerfpipeError(f"unknown {cls.__name__} settings: {', '.join(sorted(unknown))}")
-    kwargs = {}
-    for key, value in data.items():
-        hint = hints[key]
-        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
-            value = from_dict(hint, value)
-        elif isinstance(value, list) and _accepts_tuple(hint):
-            value = tuple(value)  # JSON has no tuples
-        kwargs[key] = value
-    return cls(**kwargs)
-
-
-def _accepts_tuple(hint) -> bool:
-    """Whether a type hint is a tuple, or a union with one (e.g. ``tuple[int, ...] | None``)."""
-    if typing.get_origin(hint) is tuple or hint is tuple:
-        return True
-    return any(_accepts_tuple(a) for a in typing.get_args(hint)) if typing.get_origin(hint) in (typing.Union, types.UnionType) else False
 
 
 CONFIG_KEYS = {"data": str, "model": str, "model_config": dict, "trainer": dict}

@@ -35,7 +35,6 @@ Glossary:
     marker    ``stages/<name>.done.json``
 """
 
-import dataclasses
 import hashlib
 import json
 import logging
@@ -48,7 +47,8 @@ from pathlib import Path
 from typing import Any
 
 from nerfpipe import distributed
-from nerfpipe.atomic import TMP_PREFIX, _json_default, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
+from nerfpipe.atomic import TMP_PREFIX, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
+from nerfpipe.configs import from_dict, to_dict
 from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, require_all
 from nerfpipe.paths import check_output_folder
@@ -157,12 +157,8 @@ def stages() -> "dict[str, StageSpec]":
     return discover(STAGE_GROUP, StageSpec)
 
 
-def config_dict(config: object) -> dict:
-    return json.loads(json.dumps(dataclasses.asdict(config), default=_json_default))
-
-
 def config_hash(config: object) -> str:
-    text = json.dumps(config_dict(config), sort_keys=True)
+    text = json.dumps(to_dict(config), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -170,32 +166,7 @@ def make_config(spec: StageSpec, values: "dict | None", where: "str | Path | Non
     """The stage's config with ``values`` (from TOML or a dict) applied; unknown keys are errors."""
     if values is not None and not isinstance(values, dict):
         raise NerfpipeError(f"options of stage '{spec.name}' must be a table of name = value, not {type(values).__name__}", where)
-    return _apply(spec.config(), values or {}, f"stage '{spec.name}'", where)
-
-
-def _apply(default: object, values: dict, what: str, where: "str | Path | None") -> object:
-    """``default`` with ``values`` replaced; nested config dataclasses take nested tables."""
-    names = [f.name for f in dataclasses.fields(default)]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise NerfpipeError(f"{what} has no option {unknown[0]!r} (options: {', '.join(names)})", where)
-    values = dict(values)
-    for key, value in values.items():
-        current = getattr(default, key)
-        if dataclasses.is_dataclass(current) and isinstance(value, dict):
-            values[key] = _apply(current, value, f"{what} option '{key}'", where)
-        elif isinstance(current, tuple) and isinstance(value, list):
-            values[key] = tuple(value)
-        elif isinstance(current, Path) and isinstance(value, str):
-            values[key] = Path(value)
-    try:
-        return dataclasses.replace(default, **values)
-    except (TypeError, ValueError) as exc:  # a value of the wrong type meets the config's own checks
-        raise NerfpipeError(f"{what} has an option of the wrong type ({exc})", where) from exc
-    except NerfpipeError as exc:  # the config's own check of a value: name the file it came from
-        if exc.path is not None or where is None:
-            raise
-        raise NerfpipeError(exc.problem, where) from exc
+    return from_dict(spec.config(), values or {}, f"stage '{spec.name}'", where)
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -502,7 +473,7 @@ def run_stage(spec: StageSpec, config: object, ctx: StageContext) -> StageRecord
 
 def _write_marker(marker: Path, spec: StageSpec, config: object, status: str, seconds: float, artifacts: "list[str]") -> None:
     write_json(marker, {
-        "stage": spec.name, "status": status, "config": config_dict(config), "config_hash": config_hash(config),
+        "stage": spec.name, "status": status, "config": to_dict(config), "config_hash": config_hash(config),
         "seconds": round(seconds, 3), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "finished_at": time.time(),
         "artifacts": artifacts,
     })  # fmt: skip

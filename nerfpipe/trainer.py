@@ -23,7 +23,6 @@ restarts a failed group the trainer resumes from the checkpoint, with the same o
 """
 
 import contextlib
-import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,6 +33,7 @@ from nerfpipe import distributed
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
+from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.paths import check_output_folder
 from nerfpipe.pixel_sampler import PixelSampler
@@ -161,10 +161,6 @@ def backgrounds(mode: str, has_alpha: bool) -> "tuple[str, str]":
 def share(total: int, world: distributed.World) -> int:
     """This rank's part of ``total`` (rays per step): equal parts, the remainder to the first ranks."""
     return total // world.size + (world.rank < total % world.size)
-
-
-def psnr_from_mse(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-12))
 
 
 class Trainer:

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from nerfpipe.functional.packed import more_opaque_than
-from nerfpipe.functional.volrend import MAX_THICKNESS
+from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
 
@@ -416,17 +416,16 @@ class _RayState:
 def _transmittance(sigma, samples: PackedSamples, row, col, optical_depth, shape):
     """Transmittance in front of each evaluated sample and each row's optical depth after the round.
 
-    As in :func:`~nerfpipe.functional.packed.render_weights_packed`: clamped thickness in the
-    density's precision, sums in float64, transmittance ``exp(-depth)`` in the density's precision.
+    The thickness and transmittance of :mod:`nerfpipe.functional.volrend` (as every renderer's);
+    only the optical depth in front of a sample is summed here, in float64, carried across rounds.
     """
-    ct = torch.float64 if sigma.dtype == torch.float64 else torch.float32
-    thickness = (sigma.to(ct) * (samples.t_ends - samples.t_starts).to(ct)).clamp(0.0, MAX_THICKNESS).double()
+    thickness = optical_thickness(sigma, samples.t_ends - samples.t_starts)
     dense = torch.zeros(shape, dtype=torch.float64, device=sigma.device)
-    dense[row, col] = thickness
+    dense[row, col] = thickness.double()
     cum = torch.cumsum(dense, dim=1)
-    before = optical_depth[row] + (cum[row, col] - thickness)
-    after = optical_depth + cum[:, -1]
-    return torch.exp(-before.to(ct)), after
+    before = optical_depth[row] + (cum[row, col] - dense[row, col])
+    _, trans = weights_from_thickness(thickness, before)
+    return trans, optical_depth + cum[:, -1]
 
 
 def _sorted_by_ray(kept: list, origins: Tensor) -> "tuple[PackedSamples, Tensor]":

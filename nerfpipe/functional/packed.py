@@ -9,15 +9,15 @@ Glossary:
     num_rays     number of rays (rays without samples render as background)
     sigma, delta, alpha, T, weight   as in :mod:`nerfpipe.functional.volrend`
 
-Stability: like the dense :func:`~nerfpipe.functional.volrend.render_weights`, thickness
-``sigma * delta`` is clamped to ``MAX_THICKNESS`` and alpha is ``-expm1(-x)``. The exclusive
+Stability: the thicknesses and weights are the dense renderer's
+(:func:`~nerfpipe.functional.volrend.optical_thickness`, :func:`~nerfpipe.functional.volrend.weights_from_thickness`). The exclusive
 cumulative sum within each ray is a global cumulative sum in float64 minus its value at the
 ray's first sample, so long packed batches keep full float32 accuracy per ray.
 """
 
 import torch
 
-from nerfpipe.functional.volrend import MAX_THICKNESS
+from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
 from nerfpipe.typing import Bool, Float, Int, Tensor
 
 
@@ -64,11 +64,9 @@ def render_weights_packed(
         >>> w.tolist(), t.tolist()
         ([1.0, 0.0, 1.0], [1.0, 1.0, 1.0])
     """
-    ct = torch.float64 if sigmas.dtype == torch.float64 else torch.float32
-    thickness = (sigmas.to(ct) * deltas.to(ct)).clamp(0.0, MAX_THICKNESS)
-    alpha = -torch.expm1(-thickness)
-    trans = torch.exp(-exclusive_segment_cumsum(thickness, ray_indices))
-    return (trans * alpha).to(sigmas.dtype), trans.to(sigmas.dtype)
+    thickness = optical_thickness(sigmas, deltas)
+    weights, trans = weights_from_thickness(thickness, exclusive_segment_cumsum(thickness, ray_indices))
+    return weights.to(sigmas.dtype), trans.to(sigmas.dtype)
 
 
 def prune_mask(
@@ -93,7 +91,7 @@ def prune_mask(
 
 def more_opaque_than(sigmas: Float[Tensor, "num_samples"], deltas: Float[Tensor, "num_samples"], min_alpha: float) -> Bool[Tensor, "num_samples"]:
     """Samples whose opacity ``1 - exp(-sigma * delta)`` exceeds ``min_alpha``."""
-    return -torch.expm1(-sigmas * deltas) > min_alpha
+    return -torch.expm1(-optical_thickness(sigmas, deltas)) > min_alpha
 
 
 def accumulate_packed(

@@ -25,6 +25,38 @@ def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float64 if dtype == torch.float64 else torch.float32
 
 
+def optical_thickness(sigmas: Float[Tensor, "*bs"], deltas: Float[Tensor, "*bs"]) -> Float[Tensor, "*bs"]:
+    """``sigma * delta`` in float32 (float64 stays float64), clamped to ``[0, MAX_THICKNESS]``.
+
+    The one place of nerfpipe's stability rule: every renderer (dense, packed, the occupancy
+    grid's marching, the mesh's depth scan) computes its thicknesses here.
+    """
+    ct = _compute_dtype(sigmas.dtype)
+    return (sigmas.to(ct) * deltas.to(ct)).clamp(0.0, MAX_THICKNESS)
+
+
+def weights_from_thickness(
+    thickness: Float[Tensor, "*bs"], depth_before: Float[Tensor, "*bs"]
+) -> "tuple[Float[Tensor, '*bs'], Float[Tensor, '*bs']]":
+    """``(weights, transmittance)`` of samples from their thickness and the optical depth in front of them.
+
+    ``alpha = 1 - exp(-thickness)`` (as ``-expm1``), ``T = exp(-depth_before)``, ``weight = T * alpha``:
+    the one implementation of the compositing maths. The callers differ only in how they sum the
+    depth in front of a sample: along the last axis (:func:`render_weights`), per ray over packed
+    samples (:func:`~nerfpipe.functional.packed.render_weights_packed`), or carried across the
+    rounds of early ray termination (:mod:`nerfpipe.estimators.occupancy`).
+
+    Args:
+        thickness: from :func:`optical_thickness`.
+        depth_before: sum of the thicknesses in front of each sample on its ray (0 for the first).
+
+    Returns:
+        ``(weights, transmittance)`` in the dtype of ``thickness``.
+    """
+    trans = torch.exp(-depth_before.to(thickness.dtype))
+    return trans * -torch.expm1(-thickness), trans
+
+
 def render_weights(
     sigmas: Float[Tensor, "*bs num_samples"], deltas: Float[Tensor, "*bs num_samples"]
 ) -> "tuple[Float[Tensor, '*bs num_samples'], Float[Tensor, '*bs num_samples']]":
@@ -47,15 +79,11 @@ def render_weights(
         >>> w.tolist(), t.tolist()
         ([0.0, 1.0], [1.0, 1.0])
     """
-    out_dtype = sigmas.dtype
-    ct = _compute_dtype(out_dtype)
-    thickness = (sigmas.to(ct) * deltas.to(ct)).clamp(0.0, MAX_THICKNESS)
-    alpha = -torch.expm1(-thickness)
+    thickness = optical_thickness(sigmas, deltas)
     # exclusive cumulative sum (log transmittance), exact zero for the first sample
     excl = torch.cat([torch.zeros_like(thickness[..., :1]), torch.cumsum(thickness[..., :-1], dim=-1)], dim=-1)
-    trans = torch.exp(-excl)
-    weights = trans * alpha
-    return weights.to(out_dtype), trans.to(out_dtype)
+    weights, trans = weights_from_thickness(thickness, excl)
+    return weights.to(sigmas.dtype), trans.to(sigmas.dtype)
 
 
 def accumulate(weights: Float[Tensor, "*bs num_samples"], values: Float[Tensor, "*bs num_samples C"]) -> Float[Tensor, "*bs C"]:

@@ -4,7 +4,6 @@ Timing: ``train_seconds`` counts only optimisation steps (and a one-off encoding
 periodic full-image evaluation for the PSNR curve is timed separately (``eval_seconds``).
 """
 
-import math
 import time
 from dataclasses import dataclass, field
 from collections.abc import Callable
@@ -13,6 +12,7 @@ import numpy as np
 import torch
 
 from nerfpipe.encoders import GridEncoder, is_static
+from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.image_field.field import ImageFieldConfig
 from nerfpipe.scoped import seeded_init
 from nerfpipe.typing import Float, Tensor, UInt8
@@ -75,11 +75,6 @@ def pixel_grid(height: int, width: int) -> Float[Tensor, "num_points 2"]:
     xs = (torch.arange(width, dtype=torch.float64) + 0.5) / width
     grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)
     return grid.reshape(-1, 2).float()
-
-
-def psnr_from_mse(mse: float) -> float:
-    """PSNR in dB for values in ``[0, 1]``."""
-    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
 def schedule(cfg: TrainConfig) -> "tuple[set[int], set[int]]":

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.atomic import atomic_write
+from nerfpipe.atomic import write_bytes
 from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.scene import Similarity
@@ -23,11 +23,6 @@ def to_input_frame(mesh: TriangleMesh, world_from_input: Similarity) -> Triangle
     return out
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes through :func:`nerfpipe.atomic.atomic_write` (temporary, then ``os.replace``)."""
-    atomic_write(Path(path), lambda tmp: tmp.write_bytes(data))
-
-
 def ply_bytes(mesh: TriangleMesh) -> bytes:
     """Binary PLY of the mesh (vertex colours when present), via trimesh's exporter."""
     trimesh = require("trimesh", "mesh")
@@ -38,7 +33,7 @@ def write_ply(mesh: TriangleMesh, path: "str | Path") -> Path:
     """Write ``mesh`` to ``path`` atomically (nothing half-written on failure)."""
     if mesh.num_faces == 0:
         raise NerfpipeError("refusing to write an empty mesh (no faces)", path)
-    atomic_write_bytes(Path(path), ply_bytes(mesh))
+    write_bytes(path, ply_bytes(mesh))
     return Path(path)
 
 

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.functional.volrend import render_weights
 from nerfpipe.mesh.extract import Volume, _marching_cubes, auto_level
 from nerfpipe.typing import Float, Tensor
 
@@ -96,7 +97,8 @@ def median_depth_points(
         k = torch.arange(int(float((end - start).max()) / step) + 2, dtype=o.dtype)
         t = start + k[None, :] * step  # distance along each ray [R, S]
         sigma = densities_at(volume, (o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).reshape(t.shape)
-        accumulated = 1 - torch.exp(-torch.cumsum(sigma * (t <= end) * step, dim=1))
+        weights, trans = render_weights(sigma, (t <= end) * step)
+        accumulated = 1 - (trans - weights)  # opacity after each sample: 1 - T_i (1 - alpha_i)
         hit = accumulated >= opacity
         first = hit.float().argmax(dim=1, keepdim=True)
         out.append((o + t.gather(1, first) * d)[hit[:, -1]])

@@ -6,7 +6,6 @@ and writes ``mesh.ply``, ``mesh_simplified.ply``, ``mesh_views.png`` and ``mesh.
 is written until every mesh is built, so bad input leaves no files behind.
 """
 
-import json
 import math
 import os
 import time
@@ -17,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 
+from nerfpipe.atomic import write_json
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import NerfpipeError, refuse_unless
 from nerfpipe.mesh.clean import (
@@ -25,7 +25,7 @@ from nerfpipe.mesh.clean import (
 )
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.mesh.export import atomic_write_bytes, to_input_frame, write_ply
+from nerfpipe.mesh.export import to_input_frame, write_ply
 from nerfpipe.mesh.extract import DensityFn, OccupancyFn, Volume, auto_level, level_from_surface_points, mesh_volume, sample_volume
 from nerfpipe.mesh.level import choose_level
 from nerfpipe.mesh.metrics import robust_diagonal
@@ -368,7 +368,7 @@ def write_meshes(out: MeshOutputs, out_dir: "str | Path", world_from_input: Simi
               "bounds_input_frame": full.bounds().tolist(), "load": os.getloadavg()[0]}
     if out.figures.get("support_plane") is not None:
         record["support_plane_input_frame"] = plane_in_input_frame(np.asarray(out.figures["support_plane"]), world_from_input).tolist()
-    atomic_write_bytes(paths["mesh.json"], (json.dumps(record, indent=2) + "\n").encode())
+    write_json(paths["mesh.json"], record)
     return paths
 
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfpipe.atomic import write_bytes
 from nerfpipe.cameras import Cameras
 from nerfpipe.errors import require
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.mesh.export import atomic_write_bytes
 from nerfpipe.rays import camera_rays
 from nerfpipe.typing import Float
 
@@ -97,5 +97,5 @@ def write_views(mesh: TriangleMesh, path: "str | Path", up=(0.0, 0.0, 1.0), size
     import imageio.v3 as iio
 
     img = (np.clip(render_views(mesh, up, size), 0, 1) * 255 + 0.5).astype(np.uint8)
-    atomic_write_bytes(Path(path), iio.imwrite("<bytes>", img, extension=".png"))
+    write_bytes(path, iio.imwrite("<bytes>", img, extension=".png"))
     return Path(path)

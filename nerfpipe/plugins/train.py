@@ -59,23 +59,13 @@ class TrainStageConfig:
 
 def model_config(name: str, options: dict):
     """The registered model's config with ``options`` merged in (unknown keys are errors)."""
+    from nerfpipe.configs import from_dict
     from nerfpipe.models.registry import get_model
-    from nerfpipe.runs import from_dict, to_dict
 
     spec = get_model(name)
     if not isinstance(options, dict):
         raise NerfpipeError(f"model_options must be a table of the '{name}' model's options, not {type(options).__name__}")
-    try:
-        return from_dict(spec.config, _merge(to_dict(spec.config()), options))
-    except (TypeError, ValueError) as exc:  # the model config's own checks (an unknown preset, a wrong type)
-        raise NerfpipeError(f"model_options of the '{name}' model: {exc}") from exc
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for key, value in over.items():
-        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
+    return from_dict(spec.config, options, f"model_options of the '{name}' model")
 
 
 def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfig:
@@ -88,7 +78,7 @@ def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfi
 
 def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> bool:
     """Whether ``out`` holds a checkpoint of this very training (up to the resumable options)."""
-    from nerfpipe.runs import to_dict
+    from nerfpipe.configs import to_dict
 
     if not (out / checkpoint.CHECKPOINT).is_file() or not (out / "config.json").is_file():
         return False
