@@ -26,6 +26,7 @@ def _commands() -> dict:
         "info": info.info,
         "train": __import__("nerfpipe.commands.train", fromlist=["train"]).train,
         "render": __import__("nerfpipe.commands.render", fromlist=["render"]).render,
+        "eval": __import__("nerfpipe.commands.eval", fromlist=["eval_run"]).eval_run,
         "fit2d": __import__("nerfpipe.commands.fit2d", fromlist=["fit2d"]).fit2d,
         "check": check.check,
         "synth": synth.synth,

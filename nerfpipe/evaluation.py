@@ -6,6 +6,7 @@ and scores PSNR and SSIM (kornia.metrics, 11-px Gaussian window) against the gro
 composited on the evaluation background.
 """
 
+import time
 from pathlib import Path
 
 import torch
@@ -15,7 +16,7 @@ from nerfpipe.checkpoint import CHECKPOINT
 from nerfpipe.errors import require
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.pixel_sampler import background_colors, composite_pixels
-from nerfpipe.render import capped_size, render_cameras, resize_cameras, to_uint8
+from nerfpipe.render import FramePlan, capped_size, plan_frames, render_cameras, resize_cameras, to_uint8
 from nerfpipe.runs import write_json
 
 
@@ -48,11 +49,15 @@ def ground_truth(scene, index: int, background, size: "tuple[int, int]") -> torc
     return img
 
 
+SSIM_WINDOW = 11
+"""Side of SSIM's Gaussian window in pixels (scored views are never made smaller than this)."""
+
+
 def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
     """(PSNR, SSIM) of two ``[H, W, 3]`` images in [0, 1]."""
     kornia = require("kornia", "kornia")
     a, b = pred.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float().to(pred.device)
-    return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, 11).mean())
+    return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, SSIM_WINDOW).mean())
 
 
 def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
@@ -72,29 +77,115 @@ def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
 VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
 """Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
 
+FINAL_SHARE = 0.25
+"""Under a wall-clock budget (:attr:`~nerfpipe.trainer.TrainerConfig.wall_budget`), the share of it kept for
+what follows training: the final evaluation, the figures and the videos."""
+EVAL_SHARE = 0.5
+"""Of the time left when training stops, the share the final evaluation may take (the figures come next,
+then the videos get what is left)."""
+MIN_FINAL_VIEWS = 4
+"""Under a budget, the final evaluation scores at least this many views (smaller ones when they do not fit)."""
+MIN_VIDEO_FRAMES = 12
+"""Under a budget, the videos keep at least this many frames (smaller ones when they do not fit)."""
+VALIDATION_SHARE = 0.1
+"""Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
+of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
+PROBE = 4
+"""Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side."""
+ENCODE_SHARE = 0.2
+"""Of the video's time, the share kept for encoding the GIFs and the MP4."""
 
-def validate(trainer, num_views: int) -> "tuple[float, float]":
-    """Mean (PSNR, SSIM) over ``num_views`` val views (0: all); logs it and keeps a snapshot of view 0."""
+
+def eval_views(scene, num_views: int = 0) -> "list[int]":
+    """Indices of the first ``num_views`` views of the evaluation split (0: all)."""
+    idx = [int(i) for i in scene.splits[eval_split(scene)]]
+    return idx[:num_views] if num_views else idx
+
+
+def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
+                deadline: "float | None" = None, lpips=None) -> dict:
+    """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
+    with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
+
+    Returns the per-view ``psnr``, ``ssim``, ``fitted_psnr`` lists, the render ``seconds`` and ``pixels``
+    (for the time one pixel takes), with ``keep_first`` the first rendered view as ``first``, and with an
+    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``.
+    """
+    out = {"psnr": [], "ssim": [], "fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
+    cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
+    for i, (w, h) in enumerate(sizes):
+        if i and deadline is not None and time.monotonic() > deadline:
+            break
+        start = time.perf_counter()
+        view = render_cameras(model, resize_cameras(cams[i : i + 1], w, h).to(device), chunk, background)[0]
+        out["seconds"] += time.perf_counter() - start
+        out["pixels"] += w * h
+        gt = ground_truth(scene, idx[i], background, (w, h))
+        p, s = score(view.rgb, gt)
+        out["psnr"].append(p)
+        out["ssim"].append(s)
+        out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
+        if lpips is not None:
+            with torch.no_grad():
+                out["lpips"].append(lpips(view.rgb, gt))
+        if keep_first and i == 0:
+            out["first"] = view
+    return out
+
+
+def eval_sizes(scene, idx: "list[int]", scale: float, max_size: "int | None") -> "list[tuple[int, int]]":
+    """(w, h) of views ``idx`` at ``scale``, the longer side capped at ``max_size``."""
+    cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
+    return [capped_size(int(w), int(h), scale, max_size) for w, h in zip(cams.width, cams.height)]
+
+
+def _eval_sizes(scene, idx: "list[int]", cfg, scale: float = 1.0) -> "list[tuple[int, int]]":
+    return eval_sizes(scene, idx, cfg.eval_scale * scale, cfg.eval_max_size)
+
+
+def lpips_scorer(device: str):
+    """``(scorer, None)`` with LPIPS (AlexNet) when the lpips package and torchvision's AlexNet weights are on
+    this machine, else ``(None, why not)``: evaluation never downloads anything."""
+    import importlib.util
+
+    if importlib.util.find_spec("lpips") is None:
+        return None, "the lpips package is not installed"
+    weights = Path(torch.hub.get_dir()) / "checkpoints"
+    if not any(weights.glob("alexnet-*.pth")):
+        return None, f"AlexNet weights are not in {weights}"
+    import lpips
+
+    net = lpips.LPIPS(net="alex", verbose=False).to(device).eval()
+    return lambda a, b: float(net(a.permute(2, 0, 1)[None] * 2 - 1, b.permute(2, 0, 1)[None].to(a) * 2 - 1)), None
+
+
+def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None) -> "tuple[float, float]":
+    """Mean (PSNR, SSIM) over ``num_views`` val views (0: all) at ``scale`` of the configured size (those begun
+    before ``deadline``); logs it, keeps a snapshot of view 0 and the time one rendered pixel took
+    (``trainer.seconds_per_pixel``)."""
     scene, cfg = trainer.scene, trainer.cfg
-    split = eval_split(scene)
-    idx = [int(i) for i in scene.splits[split]]
-    idx = idx[: num_views] if num_views else idx
-    cams = scene.cameras[torch.tensor(idx)]
-    sizes = [capped_size(int(w), int(h), cfg.eval_scale, cfg.eval_max_size) for w, h in zip(cams.width, cams.height)]
+    idx = eval_views(scene, num_views)
     bg = background_colors(trainer.eval_bg, 1)[0]
-    scores, fitted = [], []
-    for i, (w, h) in zip(range(len(idx)), sizes):
-        view = render_cameras(trainer.model, resize_cameras(cams[i : i + 1], w, h).to(cfg.device), cfg.chunk, bg)[0]
-        gt = ground_truth(scene, idx[i], bg, (w, h))
-        scores.append(score(view.rgb, gt))
-        fitted.append(fitted_colour_psnr(view.rgb, gt))
-        if i == 0:
-            save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(view.rgb))
-    psnr = sum(s[0] for s in scores) / len(scores)
-    ssim = sum(s[1] for s in scores) / len(scores)
+    scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True, deadline=deadline)
+    idx = idx[: len(scores["psnr"])]
+    save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(scores["first"].rgb))
+    psnr, ssim = _mean(scores["psnr"]), _mean(scores["ssim"])
     trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim, len(idx)])
-    trainer.last_fitted_psnr = sum(fitted) / len(fitted)
+    trainer.last_fitted_psnr = _mean(scores["fitted_psnr"])
+    trainer.seconds_per_pixel = scores["seconds"] / max(scores["pixels"], 1)
+    trainer.validation_seconds += scores["seconds"]
     return psnr, ssim
+
+
+def validation_due(trainer) -> bool:
+    """Whether an intermediate validation fits (always, without a wall-clock budget; see :data:`VALIDATION_SHARE`)."""
+    if trainer.cfg.wall_budget is None:
+        return True
+    return trainer.step > 0 and trainer.validation_seconds <= VALIDATION_SHARE * trainer.wall_elapsed()
+
+
+def _mean(values: "list[float]") -> float:
+    return sum(values) / len(values)
 
 
 def save_snapshot(path: Path, image) -> None:
@@ -105,21 +196,88 @@ def save_snapshot(path: Path, image) -> None:
     atomic_write(path, lambda p: iio.imwrite(p, image, extension=".png"))
 
 
-def finish(trainer) -> dict:
-    """Final validation, metrics.json, plots and videos; returns the metrics."""
-    from nerfpipe import plots
+def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
+    """The final validation: every view (or ``final_eval_views``) at the configured size, or under a
+    wall-clock budget what fits :data:`EVAL_SHARE` of the time left (recorded in ``plan``)."""
+    cfg, scene = trainer.cfg, trainer.scene
+    idx = eval_views(scene, cfg.final_eval_views)
+    if trainer.wall_left() is None:
+        return (*validate(trainer, cfg.final_eval_views), len(idx))
+    start = time.perf_counter()
+    share = EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE  # the figures and videos come after
+    allowed = share * trainer.wall_left()
+    (w, h), = _eval_sizes(scene, idx[:1], cfg)
+    pw, ph = max(1, w // PROBE), max(1, h // PROBE)  # the trained model's speed (per-view costs make it an overestimate)
+    probe = resize_cameras(scene.cameras[torch.tensor(idx[:1], dtype=torch.long)], pw, ph).to(cfg.device)
+    probe_start = time.perf_counter()
+    render_cameras(trainer.model, probe, cfg.chunk, background_colors(trainer.eval_bg, 1)[0])
+    per_view = (time.perf_counter() - probe_start) / (pw * ph) * w * h
+    min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
+    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
+    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start))
+    views = trainer.history["val"][-1][-1]
+    (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
+    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h],
+                          "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
+    return psnr, ssim, views
+
+
+def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
+    """:func:`~nerfpipe.render.plan_frames`, and when even ``min_count`` smallest views do not fit, as many
+    of those as do (never fewer than ``at_least``)."""
+    fit = plan_frames(count, min_count, per, allowed, min_scale)
+    if fit.estimated_seconds > allowed:
+        cost = per * fit.scale**2
+        n = max(at_least, min(fit.frames, int(max(allowed, 0.0) // max(cost, 1e-9))))
+        fit = FramePlan(n, fit.scale, n * cost)
+    return fit
+
+
+def _video(trainer, metrics: dict, plan: dict) -> None:
+    """Orbit/test-path videos: ``video_frames`` at ``video_scale``, or under a budget what fits the time left."""
     from nerfpipe.artifacts import write_sequence
     from nerfpipe.orbit import path_cameras
 
+    cfg = trainer.cfg
+    cams = path_cameras(trainer.scene, "test", cfg.video_frames)
+    w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))
+    left = trainer.wall_left()
+    if left is not None:
+        per_frame = (trainer.seconds_per_pixel or 0.0) * w * h
+        fit = _fit(cfg.video_frames, min(MIN_VIDEO_FRAMES, cfg.video_frames), per_frame, (1 - ENCODE_SHARE) * left, at_least=0)
+        w, h = max(1, round(w * fit.scale)), max(1, round(h * fit.scale))
+        plan["video"] = {"frames": fit.frames, "of": cfg.video_frames, "scale": fit.scale, "size": [w, h], "estimated_seconds": fit.estimated_seconds}
+        if fit.frames < 2:
+            plan["video"]["skipped"] = "no time left in the budget"
+            return
+        cams = path_cameras(trainer.scene, "test", fit.frames)
+    start = time.perf_counter()
+    bg = background_colors(trainer.eval_bg, 1)[0]
+    views = render_cameras(trainer.model, resize_cameras(cams, w, h).to(cfg.device), cfg.chunk, bg)
+    metrics["video"] = write_sequence(views, trainer.out, "orbit", depth=True)
+    if "video" in plan:
+        plan["video"]["seconds"] = time.perf_counter() - start
+    metrics["depth_colormap"] = metrics["video"]["depth_mapping"]
+
+
+def finish(trainer) -> dict:
+    """Final validation, metrics.json, plots and videos; returns the metrics.
+
+    Under a wall-clock budget the final validation and the videos are sized to what is left of it
+    (``budget_plan`` in metrics.json says what was chosen); ``nerfpipe eval RUN`` scores the full protocol.
+    """
+    from nerfpipe import plots
+
     cfg, out = trainer.cfg, trainer.out
-    psnr, ssim = validate(trainer, cfg.final_eval_views)
+    plan: dict = {}
+    psnr, ssim, views = _final_eval(trainer, plan)
     stats = trainer.model.stats()
     metrics = {
         "val_psnr": psnr,
         "val_ssim": ssim,
         "val_psnr_colour_fitted": trainer.last_fitted_psnr,
-        "val_views": cfg.final_eval_views or len(trainer.scene.splits[eval_split(trainer.scene)]),
-        "eval_scale": cfg.eval_scale,
+        "val_views": views,
+        "eval_scale": cfg.eval_scale * plan.get("final_eval", {}).get("scale", 1.0),
         "eval_max_size": cfg.eval_max_size,
         "train_seconds": trainer.train_seconds,
         "iterations": trainer.step,
@@ -133,18 +291,18 @@ def finish(trainer) -> dict:
     checkpoint = out / CHECKPOINT
     if checkpoint.is_file():  # model, optimizer moments and random streams, as stored
         metrics["checkpoint_mb"] = checkpoint.stat().st_size / 2**20
+    start = time.perf_counter()
     if cfg.write_outputs:
         plots.plot_psnr(trainer.history, out / "psnr.png")
         plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
-        spr = trainer.model.stats().get("samples_per_ray", 64)
+        spr = stats.get("samples_per_ray", 64)
         plots.plot_cameras(trainer.scene, trainer.sampler, out / "cameras.png", num_samples=int(spr))
+    plan["figures_seconds"] = time.perf_counter() - start
     if cfg.video_frames and cfg.write_outputs:
-        cams = path_cameras(trainer.scene, "test", cfg.video_frames)
-        w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))
-        bg = background_colors(trainer.eval_bg, 1)[0]
-        views = render_cameras(trainer.model, resize_cameras(cams, w, h).to(cfg.device), cfg.chunk, bg)
-        metrics["video"] = write_sequence(views, out, "orbit", depth=True)
-        metrics["depth_colormap"] = metrics["video"]["depth_mapping"]
+        _video(trainer, metrics, plan)
+    if cfg.wall_budget is not None:
+        metrics["budget_plan"] = {"wall_budget": cfg.wall_budget, "final_share": FINAL_SHARE, "training_stopped_at": trainer.training_stopped_at,
+                                  "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
     write_json(out / "metrics.json", metrics)
     write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})
     return metrics

@@ -104,9 +104,40 @@ def resize_cameras(cameras: Cameras, width: int, height: int) -> Cameras:
     )
 
 
+@dataclass(frozen=True)
+class FramePlan:
+    """How many views to render, at what fraction of their size, and the time that should take."""
+
+    frames: int
+    scale: float
+    estimated_seconds: float
+
+
+def plan_frames(frames: int, min_frames: int, seconds_per_frame: float, allowed: "float | None", min_scale: float = 0.25) -> FramePlan:
+    """Views and scale that fit ``allowed`` seconds, from the time one full-size view takes.
+
+    Without a limit, or when all ``frames`` fit, all of them at full size. Otherwise as many as fit,
+    down to ``min_frames``; below that the views shrink (time follows pixel count), to no less than
+    ``min_scale`` of the side. Used by the render stage, the trainer's final evaluation and its video.
+
+    Example:
+        >>> plan_frames(60, 12, 1.0, 30.0), plan_frames(60, 12, 1.0, 3.0).scale
+        (FramePlan(frames=30, scale=1.0, estimated_seconds=30.0), 0.5)
+    """
+    per = max(seconds_per_frame, 1e-6)
+    if allowed is None or frames * per <= allowed:
+        return FramePlan(frames, 1.0, frames * per)
+    fitting = int(max(allowed, 0.0) // per)
+    if fitting >= min_frames:
+        return FramePlan(fitting, 1.0, fitting * per)
+    count = min(min_frames, frames)
+    scale = max(min_scale, min(1.0, (max(allowed, 0.0) / (count * per)) ** 0.5))
+    return FramePlan(count, scale, count * per * scale**2)
+
+
 def to_uint8(image: Float[Tensor, "*bs"]) -> "object":
     """``[0, 1]`` float image -> uint8 numpy array."""
     return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
-__all__ = ["RenderedView", "render_cameras", "render_rays", "resize_cameras", "to_uint8"]
+__all__ = ["FramePlan", "RenderedView", "plan_frames", "render_cameras", "render_rays", "resize_cameras", "to_uint8"]

@@ -50,6 +50,15 @@ def load_model_state(model, state: dict, ckpt_path: Path, name: str) -> None:
         raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG} ({' '.join(str(exc).split())[:300]})", ckpt_path) from exc
 
 
+def model_dir(run_dir: Path) -> Path:
+    """The folder of a run that holds its model: the run itself (``nerfpipe train``) or its ``train/``
+    (``nerfpipe run``); the run itself when neither has a ``config.json`` (so errors name it)."""
+    run_dir = Path(run_dir)
+    if not (run_dir / CONFIG).is_file() and (run_dir / "train" / CONFIG).is_file():
+        return run_dir / "train"
+    return run_dir
+
+
 def load_run(run_dir: Path, device: str = "cpu"):
     """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode.
 

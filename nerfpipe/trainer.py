@@ -57,6 +57,11 @@ class TrainerConfig:
     time_budget: "float | None" = None
     """Stop after this many seconds of training (validation excluded), whichever of the two comes first;
     the iteration running when the budget runs out is finished."""
+    wall_budget: "float | None" = None
+    """Wall-clock seconds for the whole run from when the trainer is made: training, validations, the final
+    evaluation, figures and videos. Training stops when :data:`~nerfpipe.evaluation.FINAL_SHARE` of it is
+    left; the final evaluation's views and size and the videos' frames and size are then chosen to fit
+    (``budget_plan`` in metrics.json). ``nerfpipe eval RUN`` scores the full protocol afterwards."""
     clock: str = "wall"
     """What ``time_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
     seconds divided by the torch threads; steadier on a shared machine)."""
@@ -108,6 +113,7 @@ class TrainerConfig:
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
+            ("wall_budget", self.wall_budget is None or self.wall_budget >= 0, "0 or more seconds"),
             ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
             ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
             ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
@@ -171,6 +177,7 @@ class Trainer:
         the output folder, the optional modules the outputs need, and every image the run will read."""
         from nerfpipe import evaluation
 
+        self.started = time.monotonic()  # the wall_budget counts from here
         self.world = distributed.world(cfg.device)
         if self.world.active:
             refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
@@ -200,6 +207,10 @@ class Trainer:
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
         self.hooks = self.model.callbacks()
+        self.seconds_per_pixel: "float | None" = None  # of the latest validation render
+        self.validation_seconds = 0.0  # rendering for validations so far
+        self.training_stopped_at: "float | None" = None  # wall seconds after start
+        self.final_started_at: "float | None" = None  # after the final checkpoint
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
@@ -298,9 +309,25 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = group["initial_lr"] * factor
 
+    def wall_elapsed(self) -> float:
+        return time.monotonic() - self.started
+
+    def wall_left(self) -> "float | None":
+        """Seconds left of the ``wall_budget`` (never negative); None without one."""
+        return None if self.cfg.wall_budget is None else max(0.0, self.cfg.wall_budget - self.wall_elapsed())
+
+    def training_window(self) -> "float | None":
+        """Wall seconds after the start at which training stops under a ``wall_budget`` (the rest is the final phase's)."""
+        from nerfpipe.evaluation import FINAL_SHARE
+
+        return None if self.cfg.wall_budget is None else (1 - FINAL_SHARE) * self.cfg.wall_budget
+
     def done(self) -> bool:
-        budget = self.cfg.time_budget
-        return self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
+        budget, window = self.cfg.time_budget, self.training_window()
+        if window is not None:  # under torchrun every rank must stop at the same step: the group's slowest clock
+            wall = distributed.maximum(self.wall_elapsed()) if self.world.active else self.wall_elapsed()
+        return (self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
+                or (window is not None and wall >= window))
 
     def train(self) -> dict:
         """Train until ``iters`` or ``time_budget``, then validate and write every output.
@@ -330,8 +357,8 @@ class Trainer:
         if writer:
             self.write_config()
         self.model.train()
-        with TrainProgress(self.cfg, self.step, self.train_seconds) if writer else _Quiet() as bar:
-            if self.step == 0 and self.cfg.eval_every and writer:
+        with TrainProgress(self.cfg, self.step, self.train_seconds, self.training_window()) if writer else _Quiet() as bar:
+            if self.step == 0 and self.cfg.eval_every and writer and evaluation.validation_due(self):
                 evaluation.validate(self, self.cfg.eval_views)  # the starting point of the curves
             while not self.done():
                 t0 = self.clock()
@@ -340,15 +367,17 @@ class Trainer:
                 if self.world.active:  # one clock for the group, so every rank stops at the same step
                     self.train_seconds = distributed.maximum(self.train_seconds)
                 self.history["train"].append([self.step, self.train_seconds, psnr_from_mse(mse)])
-                bar.update(self.step, self.train_seconds, psnr_from_mse(mse))
+                bar.update(self.step, self.train_seconds, psnr_from_mse(mse), self.wall_elapsed())
                 self.periodic(evaluation, bar)
+        self.training_stopped_at = self.wall_elapsed()
         self.fire(Callback.AFTER_TRAIN)
         self.save()
+        self.final_started_at = self.wall_elapsed()
         return evaluation.finish(self) if writer else None
 
     def periodic(self, evaluation, bar) -> None:
         every, ck = self.cfg.eval_every, self.cfg.checkpoint_every
-        if every and self.step % every == 0 and not self.done() and self.world.writer:
+        if every and self.step % every == 0 and not self.done() and self.world.writer and evaluation.validation_due(self):
             psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
             bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")
         if ck and self.step % ck == 0:

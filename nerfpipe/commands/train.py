@@ -42,7 +42,9 @@ def train(
             default: grids + occupancy grid) or ``vanilla`` (the classic MLP; course recipe: 10k rays).
         out: run folder (default: runs/<dataset>-<model>).
         iters: training iterations.
-        time_budget: stop after this many seconds of training (validation excluded).
+        time_budget: wall-clock seconds for the whole command, final evaluation and videos included: training
+            stops with a quarter of it left, and the final evaluation and videos are sized to fit (recorded in
+            metrics.json ``budget_plan``; ``nerfpipe eval RUN`` scores every view at full size afterwards).
         clock: what the budget counts: wall seconds, or process CPU seconds / threads (steadier on a busy machine).
         rays_per_step: rays per iteration, drawn across all training images.
         lr: Adam learning rate.
@@ -80,13 +82,15 @@ def train(
             raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
         model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
     cfg = TrainerConfig(
-        iters=iters, time_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every, checkpoint_every=checkpoint_every,
+        iters=iters, wall_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every, checkpoint_every=checkpoint_every,
         eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
         video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
     )
     out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
     require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if view else ()))  # before the dataset is read
     scene = load(path)
+    if time_budget is not None:  # the budget counts from the process's start: imports and reading the dataset are part of it
+        cfg = dataclasses.replace(cfg, wall_budget=max(0.0, time_budget - process_age()))
     trainer = Trainer(cfg, scene, model, model_cfg, out)
     watcher = None
     if view and trainer.world.writer:  # rank 0 of a torchrun group shows it
@@ -103,3 +107,17 @@ def train(
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")
     return 0
+
+
+def process_age() -> float:
+    """Wall seconds since this process started (Linux ``/proc``; 0 where it cannot be read)."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime (clock ticks after boot)
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0

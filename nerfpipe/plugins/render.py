@@ -13,13 +13,13 @@ rendered views are also returned in memory (``views``).
 """
 
 import json
-import math
 import time
 from dataclasses import dataclass
 from typing import Literal
 
 from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
 from nerfpipe.errors import refuse_unless
+from nerfpipe.render import FramePlan, plan_frames as _plan
 from nerfpipe.stages import StageContext, StageSpec, atomic_path
 
 RENDER_DIR = "render"
@@ -55,32 +55,10 @@ class RenderConfig:
         ))  # fmt: skip
 
 
-@dataclass(frozen=True)
-class FramePlan:
-    """How many frames, at what fraction of the configured size."""
-
-    frames: int
-    scale: float
-    estimated_seconds: float
-
-
 def plan_frames(config: RenderConfig, seconds_per_frame: float, time_left: "float | None") -> FramePlan:
-    """Frames and scale that fit ``budget_share * time_left``, from the time one frame took.
-
-    Without a budget, or when every frame fits, the configured count at full size. Otherwise as many
-    frames as fit, down to ``min_frames``; below that the frames shrink (time follows pixel count),
-    to no less than a quarter of the side.
-    """
-    per = max(seconds_per_frame, 1e-6)
-    if time_left is None or config.frames * per <= config.budget_share * time_left:
-        return FramePlan(config.frames, 1.0, config.frames * per)
-    allowed = config.budget_share * time_left
-    fitting = int(allowed // per)
-    if fitting >= config.min_frames:
-        return FramePlan(fitting, 1.0, fitting * per)
-    frames = min(config.min_frames, config.frames)
-    scale = max(0.25, min(1.0, math.sqrt(allowed / (frames * per))))
-    return FramePlan(frames, scale, frames * per * scale**2)
+    """Frames and scale that fit ``budget_share * time_left`` (:func:`nerfpipe.render.plan_frames`)."""
+    allowed = None if time_left is None else config.budget_share * time_left
+    return _plan(config.frames, config.min_frames, seconds_per_frame, allowed)
 
 
 def _background(ctx: StageContext, scene):

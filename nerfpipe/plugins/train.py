@@ -28,7 +28,7 @@ from nerfpipe.trainer import TrainerConfig
 TRAIN_DIR = "train"
 CHECKPOINT = f"{TRAIN_DIR}/{checkpoint.CHECKPOINT}"
 METRICS = f"{TRAIN_DIR}/metrics.json"
-_RESUMABLE_CHANGES = ("iters", "time_budget", "resume", "device", "video_frames")
+_RESUMABLE_CHANGES = ("iters", "time_budget", "wall_budget", "resume", "device", "video_frames")
 """Trainer options that may differ between a checkpoint and the run that continues it."""
 
 

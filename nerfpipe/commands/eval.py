@@ -1,0 +1,70 @@
+"""``nerfpipe eval``: the full evaluation protocol of a trained run, whatever budget it was trained under."""
+
+from pathlib import Path
+
+from tyro.conf import Positional
+
+
+def eval_run(
+    run_dir: Positional[Path],
+    views: int = 0,
+    scale: float = 1.0,
+    max_size: "int | None" = None,
+    chunk: int = 4096,
+    device: str = "cpu",
+    json: bool = False,
+) -> int:
+    """Score a trained run on its held-out views: every view at full resolution by default, PSNR and SSIM,
+    and LPIPS (AlexNet) when the lpips package and its weights are on this machine (nothing is downloaded).
+    Writes RUN_DIR/eval.json.
+
+    Args:
+        run_dir: a run folder of nerfpipe train, or of nerfpipe run (its train/ folder is used).
+        views: the first this many views of the evaluation split (0: all).
+        scale: resolution factor of the renders (ground truth is area-resized to match).
+        max_size: longer side of the renders in pixels at most (none: full size).
+        chunk: rays per forward pass (bounds memory).
+        device: torch device.
+        json: print the result as JSON only.
+    """
+    import json as _json
+    import time
+
+    from nerfpipe.atomic import write_json
+    from nerfpipe.devices import check_device
+    from nerfpipe.errors import refuse_unless, require
+    from nerfpipe.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
+    from nerfpipe.pixel_sampler import background_colors
+    from nerfpipe.runs import load_run, model_dir
+    from nerfpipe.trainer import backgrounds
+
+    refuse_unless([("views", views >= 0, "0 or more", views), ("scale", 0 < scale <= 16, "a positive factor (at most 16)", scale),
+                   ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
+    require("kornia", "kornia")
+    folder = model_dir(Path(run_dir))
+    scene, model, cfg = load_run(folder, check_device(device))
+    idx = eval_views(scene, views)
+    sizes = eval_sizes(scene, idx, scale, max_size)
+    bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
+    lpips, lpips_note = lpips_scorer(device)
+    start = time.perf_counter()
+    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips)
+    result = {
+        "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}),
+        "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
+        "lpips": _mean(scores["lpips"]) if lpips is not None else None, "lpips_note": lpips_note,
+        "per_view": [{"view": i, "psnr": p, "ssim": s} for i, p, s in zip(idx, scores["psnr"], scores["ssim"])],
+        "seconds": time.perf_counter() - start,
+    }
+    write_json(folder / "eval.json", result)
+    if json:
+        print(_json.dumps(result, indent=2))
+    else:
+        lp = f", LPIPS {result['lpips']:.4f}" if result["lpips"] is not None else f" (no LPIPS: {lpips_note})"
+        print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
+              f"PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
+    return 0
+
+
+def _mean(values: "list[float]") -> float:
+    return sum(values) / len(values)
