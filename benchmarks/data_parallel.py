@@ -24,9 +24,9 @@ import torch
 
 
 def model_sizes(path: str, preset: "str | None") -> dict:
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.trainer import scene_info
-    from plugins.train import model_config
+    from nerfpipe.plugins.train import model_config
 
     model = model_config("fast", {"preset": preset} if preset else {}).setup(scene_info(load(path)))
     params = [p for g in model.param_groups() for p in g["params"]]
@@ -44,9 +44,9 @@ def step_split(path: str, preset: "str | None", rays: int, steps: int) -> dict:
     """Seconds per training step of one process at ``rays`` and ``rays / 2`` rays per step, and of the
     optimiser's step alone (the part every rank repeats whatever its share of the rays): what the
     ray-proportional part of a step is, on this machine."""
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.trainer import Trainer, TrainerConfig
-    from plugins.train import model_config
+    from nerfpipe.plugins.train import model_config
 
     scene, out = load(path), {}
     for n in (rays, rays // 2):

@@ -23,19 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-def _presets() -> dict:
-    from nerfpipe.models.fast import FastConfig
-    from nerfpipe.models.vanilla import VanillaConfig
-
-    return {
-        "vanilla": ("vanilla", VanillaConfig(), {"rays_per_step": 1024, "lr": 5e-4}),
-        "fast": ("fast", FastConfig(), {"rays_per_step": 4096}),
-        "fast-small": ("fast", FastConfig(preset="small"), {"rays_per_step": 4096}),
-        "fast-medium": ("fast", FastConfig(preset="medium"), {"rays_per_step": 4096}),
-        "fast-large": ("fast", FastConfig(preset="large"), {"rays_per_step": 4096}),
-    }
-
-
 PRESET_NAMES = ("vanilla", "fast-small", "fast-medium", "fast-large")
 """Default presets; ``fast`` (capacity chosen from the scene) is also available."""
 
@@ -47,11 +34,13 @@ def resolve_preset(name: str):
 
     from nerfpipe.errors import NerfpipeError
 
+    from nerfpipe.models.registry import presets as named_presets
+
     base, _, options = name.partition(":")
-    presets = _presets()
+    presets = named_presets()
     if base not in presets:
         raise NerfpipeError(f"unknown bench preset {base!r}; choose from {', '.join(presets)}")
-    model_name, model_cfg, over = presets[base]
+    model_name, model_cfg, over = presets[base].model, presets[base].config, dict(presets[base].trainer)
     for item in filter(None, options.split(",")):
         key, _, value = item.partition("=")
         if key not in {f.name for f in dataclasses.fields(model_cfg)}:

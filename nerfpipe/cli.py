@@ -24,7 +24,7 @@ def _commands() -> dict:
 
     return {
         "info": info.info,
-        "train": __import__("nerfpipe.commands.train", fromlist=["train"]).train,
+        "train": _train,
         "render": __import__("nerfpipe.commands.render", fromlist=["render"]).render,
         "eval": __import__("nerfpipe.commands.eval", fromlist=["eval_run"]).eval_run,
         "fit2d": __import__("nerfpipe.commands.fit2d", fromlist=["fit2d"]).fit2d,
@@ -42,6 +42,31 @@ def _commands() -> dict:
     }
 
 
+def _train() -> int:
+    """Train a radiance field on a dataset into a run folder (every TrainerConfig field and the model's config as options)."""
+    return 2  # never called: ``nerfpipe train ...`` is parsed by nerfpipe.commands.train.main, from the configs
+
+
+GENERATED = {"train": ("nerfpipe.commands.train", "main"), "stage": ("nerfpipe.commands.run", "stage_main"),
+             "run": ("nerfpipe.commands.run", "run_main")}
+"""Subcommands whose options depend on one of their own arguments (``--model``, the stage): they parse their command line
+themselves, from the config dataclasses (listed in ``nerfpipe --help`` through the entries above)."""
+
+
+def _dispatch(argv: "list[str]"):
+    import importlib
+
+    import tyro
+
+    from nerfpipe.commands.helptext import plain_help
+
+    with plain_help():
+        if argv and argv[0] in GENERATED:
+            module, function = GENERATED[argv[0]]
+            return getattr(importlib.import_module(module), function)(argv[1:])
+        return tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="nerfpipe")
+
+
 def main(argv: "list[str] | None" = None) -> int:
     from nerfpipe import runtime
 
@@ -49,12 +74,10 @@ def main(argv: "list[str] | None" = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("NERFPIPE_DEBUG") == "1"
     argv = [a for a in argv if a != "--debug"]
-    import tyro
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
-            result = tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="nerfpipe")
+            result = _dispatch(argv)
     except NerfpipeError as exc:
         if debug:
             raise

@@ -12,9 +12,28 @@ import json
 import types
 import typing
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from nerfpipe.atomic import _json_default
 from nerfpipe.errors import NerfpipeError
+
+
+JsonTable = Annotated[dict, tyro.constructors.PrimitiveConstructorSpec(
+    nargs=1, metavar="JSON", instance_from_str=lambda args: _json_table(args[0]), is_instance=lambda x: isinstance(x, dict),
+    str_from_instance=lambda x: [json.dumps(x)])]
+"""A free-form table field of a config (e.g. a model's options): a JSON object on the command line."""
+
+
+def _json_table(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except ValueError as exc:
+        raise NerfpipeError(f"not a JSON object: {text!r} ({exc})") from exc
+    if not isinstance(value, dict):
+        raise NerfpipeError(f"not a JSON object: {text!r}")
+    return value
 
 
 def to_dict(config: object) -> dict:

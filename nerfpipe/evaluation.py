@@ -78,7 +78,7 @@ VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
 """Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
 
 FINAL_SHARE = 0.25
-"""Under a wall-clock budget (:attr:`~nerfpipe.trainer.TrainerConfig.wall_budget`), the share of it kept for
+"""Under a wall-clock budget (:attr:`~nerfpipe.trainer.TrainerConfig.time_budget`), the share of it kept for
 what follows training: the final evaluation, the figures and the videos."""
 EVAL_SHARE = 0.5
 """Of the time left when training stops, the share the final evaluation may take (the figures come next,
@@ -179,7 +179,7 @@ def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | Non
 
 def validation_due(trainer) -> bool:
     """Whether an intermediate validation fits (always, without a wall-clock budget; see :data:`VALIDATION_SHARE`)."""
-    if trainer.cfg.wall_budget is None:
+    if trainer.cfg.time_budget is None:
         return True
     return trainer.step > 0 and trainer.validation_seconds <= VALIDATION_SHARE * trainer.wall_elapsed()
 
@@ -300,8 +300,8 @@ def finish(trainer) -> dict:
     plan["figures_seconds"] = time.perf_counter() - start
     if cfg.video_frames and cfg.write_outputs:
         _video(trainer, metrics, plan)
-    if cfg.wall_budget is not None:
-        metrics["budget_plan"] = {"wall_budget": cfg.wall_budget, "final_share": FINAL_SHARE, "training_stopped_at": trainer.training_stopped_at,
+    if cfg.time_budget is not None:
+        metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE, "training_stopped_at": trainer.training_stopped_at,
                                   "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
     write_json(out / "metrics.json", metrics)
     write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})

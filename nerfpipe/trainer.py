@@ -6,7 +6,7 @@ Usable from Python::
     trainer = Trainer(TrainerConfig(iters=200), scene, "vanilla", VanillaConfig(), Path("runs/lego"))
     metrics = trainer.train()
 
-Training time (``train_seconds``, the ``time_budget``) counts sampling, forward, backward, the
+Training time (``train_seconds``, the ``train_budget``) counts sampling, forward, backward, the
 optimiser step and callbacks; validation, checkpoints and plots are excluded.
 
 A trainer leaves the process as it found it: the model is initialised from ``seed`` with torch's
@@ -54,16 +54,17 @@ class TrainerConfig:
 
     iters: int = 1000
     """Training iterations (optimiser steps)."""
-    time_budget: "float | None" = None
+    train_budget: "float | None" = None
     """Stop after this many seconds of training (validation excluded), whichever of the two comes first;
     the iteration running when the budget runs out is finished."""
-    wall_budget: "float | None" = None
-    """Wall-clock seconds for the whole run from when the trainer is made: training, validations, the final
-    evaluation, figures and videos. Training stops when :data:`~nerfpipe.evaluation.FINAL_SHARE` of it is
+    time_budget: "float | None" = None
+    """Wall-clock seconds for the whole run, end to end: from when the trainer is made (or the ``started`` it is
+    given: ``nerfpipe train`` counts from the process's start), training, validations, the final evaluation,
+    figures and videos. Training stops when :data:`~nerfpipe.evaluation.FINAL_SHARE` of it is
     left; the final evaluation's views and size and the videos' frames and size are then chosen to fit
     (``budget_plan`` in metrics.json). ``nerfpipe eval RUN`` scores the full protocol afterwards."""
     clock: str = "wall"
-    """What ``time_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
+    """What ``train_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
     seconds divided by the torch threads; steadier on a shared machine)."""
     rays_per_step: int = 10000
     """Rays per iteration, drawn uniformly from all pixels of all training images."""
@@ -112,8 +113,8 @@ class TrainerConfig:
             ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"between 1 and {MAX_RAYS_PER_STEP}"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
+            ("train_budget", self.train_budget is None or self.train_budget >= 0, "0 or more seconds"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
-            ("wall_budget", self.wall_budget is None or self.wall_budget >= 0, "0 or more seconds"),
             ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
             ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
             ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
@@ -172,12 +173,13 @@ def share(total: int, world: distributed.World) -> int:
 class Trainer:
     """Trains one model on one scene into a run folder."""
 
-    def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path) -> None:
+    def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path, started: "float | None" = None) -> None:
         """Everything that can be refused is refused here, before training and before ``out_dir`` is made:
-        the output folder, the optional modules the outputs need, and every image the run will read."""
+        the output folder, the optional modules the outputs need, and every image the run will read.
+        ``started`` (a ``time.monotonic()`` value, default now) is when the ``time_budget`` began."""
         from nerfpipe import evaluation
 
-        self.started = time.monotonic()  # the wall_budget counts from here
+        self.started = time.monotonic() if started is None else started
         self.world = distributed.world(cfg.device)
         if self.world.active:
             refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
@@ -313,24 +315,24 @@ class Trainer:
         return time.monotonic() - self.started
 
     def wall_left(self) -> "float | None":
-        """Seconds left of the ``wall_budget`` (never negative); None without one."""
-        return None if self.cfg.wall_budget is None else max(0.0, self.cfg.wall_budget - self.wall_elapsed())
+        """Seconds left of the ``time_budget`` (never negative); None without one."""
+        return None if self.cfg.time_budget is None else max(0.0, self.cfg.time_budget - self.wall_elapsed())
 
     def training_window(self) -> "float | None":
-        """Wall seconds after the start at which training stops under a ``wall_budget`` (the rest is the final phase's)."""
+        """Wall seconds after the start at which training stops under a ``time_budget`` (the rest is the final phase's)."""
         from nerfpipe.evaluation import FINAL_SHARE
 
-        return None if self.cfg.wall_budget is None else (1 - FINAL_SHARE) * self.cfg.wall_budget
+        return None if self.cfg.time_budget is None else (1 - FINAL_SHARE) * self.cfg.time_budget
 
     def done(self) -> bool:
-        budget, window = self.cfg.time_budget, self.training_window()
+        budget, window = self.cfg.train_budget, self.training_window()
         if window is not None:  # under torchrun every rank must stop at the same step: the group's slowest clock
             wall = distributed.maximum(self.wall_elapsed()) if self.world.active else self.wall_elapsed()
         return (self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
                 or (window is not None and wall >= window))
 
     def train(self) -> dict:
-        """Train until ``iters`` or ``time_budget``, then validate and write every output.
+        """Train until ``iters`` or ``train_budget``, then validate and write every output.
 
         Holds the run folder's lock (:func:`nerfpipe.runlock.run_lock`): a second training into the
         same folder refuses while this one runs. In a torchrun group every rank calls this; rank 0

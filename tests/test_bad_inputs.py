@@ -544,7 +544,7 @@ CASES: "dict[str, Case]" = {
     "train/lr-nan": param_case("train", ["--lr", "nan"], "--lr"),
     "train/eval-scale-0": param_case("train", ["--eval-scale", "0"], "--eval-scale"),
     "train/background-unknown": param_case("train", ["--background", "purple"], "--background"),
-    "train/num-samples-zero": param_case("train", ["--model", "vanilla", "--num-samples", "0"], "--num-samples"),
+    "train/num-samples-zero": param_case("train", ["--model", "vanilla", "--model.num-samples", "0"], "--num-samples"),
     "train/model-unknown": param_case("train", ["--model", "nosuch"], "nosuch"),
     "train/missing-mp4-writer": param_case("train", ["--iters", "1"], "imageio_ffmpeg", missing_module="imageio_ffmpeg"),
     "train/missing-matplotlib": param_case("train", ["--iters", "1"], "matplotlib", missing_module="matplotlib"),

@@ -73,11 +73,11 @@ def test_train_stage_takes_its_share_of_the_pipeline_budget(tmp_path):
     from nerfpipe.stages import StageContext
 
     stage = TrainStageConfig()
-    share = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0)).time_budget
+    share = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0)).train_budget
     assert 0.6 * 99.0 < share <= 0.6 * 100.0  # budget_share of what is left
-    capped = replace(stage, trainer=replace(stage.trainer, time_budget=30.0))
-    assert _trainer_config(capped, StageContext(run_dir=tmp_path, time_budget=100.0)).time_budget == 30.0
-    assert _trainer_config(stage, StageContext(run_dir=tmp_path)).time_budget is None
+    capped = replace(stage, trainer=replace(stage.trainer, train_budget=30.0))
+    assert _trainer_config(capped, StageContext(run_dir=tmp_path, time_budget=100.0)).train_budget == 30.0
+    assert _trainer_config(stage, StageContext(run_dir=tmp_path)).train_budget is None
     spent = StageContext(run_dir=tmp_path, time_budget=10.0, started=0.0)  # started long ago: nothing left
-    assert _trainer_config(stage, spent).time_budget == 0.0
+    assert _trainer_config(stage, spent).train_budget == 0.0
 

@@ -40,7 +40,7 @@ import json, os, sys, time
 from pathlib import Path
 import torch
 from safetensors.torch import save_file
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.runs import from_dict
 from nerfpipe.models.fast import FastConfig
 from nerfpipe.trainer import Trainer, TrainerConfig
@@ -100,7 +100,7 @@ def two_ranks(scene, tmp_path_factory) -> Path:
 
 
 def test_one_step_of_two_processes_is_one_step_on_the_union_of_their_rays(scene, two_ranks, tmp_path, monkeypatch):
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.runs import from_dict
 
     got = load_file(str(two_ranks.parent / "rank0-0-step1.safetensors"))
@@ -140,7 +140,7 @@ def test_one_step_of_two_processes_is_one_step_on_the_union_of_their_rays(scene,
 
 
 def test_ranks_stay_identical_through_refreshes_and_tightening_and_resume_in_one_process(scene, two_ranks, tmp_path):
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
     from nerfpipe.runs import from_dict
 
     out, iters = two_ranks, ITERS

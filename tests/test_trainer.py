@@ -102,13 +102,13 @@ def test_resume_continues_from_checkpoint(tiny_scene, tmp_path):
 
 
 def test_time_budget_stops_training(tiny_scene, tmp_path):
-    t = Trainer(tcfg(iters=10_000, time_budget=0.0, eval_every=0), tiny_scene, "vanilla", MODEL, tmp_path)
+    t = Trainer(tcfg(iters=10_000, train_budget=0.0, eval_every=0), tiny_scene, "vanilla", MODEL, tmp_path)
     assert t.train()["iterations"] == 0
 
 
-def test_spent_wall_budget_still_scores_one_view_and_records_the_plan(tiny_scene, tmp_path):
+def test_spent_time_budget_still_scores_one_view_and_records_the_plan(tiny_scene, tmp_path):
     """A wall-clock budget already spent: no training, one view scored, the video left out, all recorded."""
-    t = Trainer(tcfg(iters=10_000, wall_budget=0.0, video_frames=30, write_outputs=True), tiny_scene, "vanilla", MODEL, tmp_path)
+    t = Trainer(tcfg(iters=10_000, time_budget=0.0, video_frames=30, write_outputs=True), tiny_scene, "vanilla", MODEL, tmp_path)
     metrics = t.train()
     plan = json.loads((tmp_path / "metrics.json").read_text())["budget_plan"]
     assert metrics["iterations"] == 0 and metrics["val_views"] == 1 == plan["final_eval"]["views"]
@@ -116,21 +116,21 @@ def test_spent_wall_budget_still_scores_one_view_and_records_the_plan(tiny_scene
     assert t.history["val"] == [[0, 0.0, metrics["val_psnr"], metrics["val_ssim"], 1]]  # no step-0 validation under a budget
 
 
-def test_ample_wall_budget_keeps_the_full_protocol(tiny_scene, tmp_path):
-    t = Trainer(tcfg(iters=4, wall_budget=3600.0, video_frames=3, write_outputs=True), tiny_scene, "vanilla", MODEL, tmp_path)
+def test_ample_time_budget_keeps_the_full_protocol(tiny_scene, tmp_path):
+    t = Trainer(tcfg(iters=4, time_budget=3600.0, video_frames=3, write_outputs=True), tiny_scene, "vanilla", MODEL, tmp_path)
     metrics = t.train()
     plan = metrics["budget_plan"]
     assert metrics["iterations"] == 4 and metrics["val_views"] == 2 and plan["final_eval"]["scale"] == 1.0
     assert plan["video"]["frames"] == 3 and metrics["video"]["size"] == [SIZE, SIZE]
 
 
-def test_progress_eta_under_a_wall_budget_is_the_time_to_the_end_of_the_run():
+def test_progress_eta_under_a_time_budget_is_the_time_to_the_end_of_the_run():
     from nerfpipe.progress import TrainProgress
 
-    bar = TrainProgress(tcfg(iters=100_000, wall_budget=100.0), 0, 0.0, window=75.0)
+    bar = TrainProgress(tcfg(iters=100_000, time_budget=100.0), 0, 0.0, window=75.0)
     assert bar.eta(1, 1.0, wall=10.0) == pytest.approx(90.0)  # first update: to the end of the budget
     assert bar.eta(11, 5.0, wall=20.0) == pytest.approx(55.0 + 25.0)  # the window binds, then the final phase
-    bar = TrainProgress(tcfg(iters=21, wall_budget=100.0), 0, 0.0, window=75.0)
+    bar = TrainProgress(tcfg(iters=21, time_budget=100.0), 0, 0.0, window=75.0)
     bar.eta(1, 1.0, wall=10.0)
     assert bar.eta(11, 5.0, wall=20.0) == pytest.approx(10 * 1.0 + 25.0)  # the iterations end first (1 s each)
     assert bar.completed(11, 5.0, 20.0) == (20.0, "20/75 s, step 11")
@@ -139,7 +139,7 @@ def test_progress_eta_under_a_wall_budget_is_the_time_to_the_end_of_the_run():
 def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32",
-                 "--num-samples", "8", "--video-frames", "0", "--eval-every", "0"]) == 0
+                 "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0"]) == 0
     capsys.readouterr()
     assert main(["eval", str(run), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -151,7 +151,7 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
 
 def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32", "--num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
+    args = ["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32", "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
     assert main(args) == 0
     assert main(["render", str(run), "--path", "orbit", "--depth", "--size", "12x10", "--frames", "2", "--background", "white"]) == 0
     import imageio.v3 as iio
@@ -199,7 +199,7 @@ def test_cpu_clock_budget_counts_process_seconds(tiny_scene, tmp_path, monkeypat
 
     cpu = iter(range(0, 10_000, 3))  # every reading of the CPU clock advances it by 3 s
     monkeypatch.setattr(time_module, "process_time", lambda: float(next(cpu)))
-    t = Trainer(tcfg(iters=100, time_budget=10.0, clock="cpu", eval_every=0), tiny_scene, "vanilla", MODEL, tmp_path)
+    t = Trainer(tcfg(iters=100, train_budget=10.0, clock="cpu", eval_every=0), tiny_scene, "vanilla", MODEL, tmp_path)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     t.train()
     assert t.step == 4 and t.train_seconds == 12.0  # 3 CPU seconds per step, stopped once 10 were spent

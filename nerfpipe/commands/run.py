@@ -111,26 +111,76 @@ def run(
     resume: bool = True,
     device: str = "cpu",
 ) -> int:
-    """Run the pipeline on a dataset or a folder of photos, resuming a previous run.
+    """Run the pipeline on a dataset or a folder of photos, resuming a previous run (every stage's options
+    as --STAGE.OPTION: nerfpipe run --help).
 
     Args:
         path: dataset (COLMAP folder, transforms.json, .npz) or a folder of photos (SfM runs first).
-        stages: comma-separated chain, e.g. ``load,check,export`` (default: sfm,load,check,train,render,mesh,export,report).
-        pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each.
-        out: run folder (default: ``runs/<input name>``).
+        stages: comma-separated chain, e.g. ``load,check,export`` (none: sfm,load,check,train,render,mesh,export,report).
+        pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each (the defaults of the --STAGE.* options).
+        out: run folder (none: ``runs/<input name>``).
         time_budget: seconds the whole run may take (stages that can, stop early).
         resume: skip stages that finished before with the same options.
         device: torch device for the stages that compute.
     """
+    return 2  # never called: ``nerfpipe run ...`` is parsed by :func:`run_main`, from the stages' configs
+
+
+def run_command_type(registry: dict, defaults: "dict[str, object]") -> type:
+    """:func:`run`'s options and one group per installed stage, ``--STAGE.FIELD`` for every field of its config
+    (nested configs nested further), at the values of ``defaults`` (a pipeline file's) or the config's."""
+    import dataclasses
+    import inspect
+
+    import typing
+
+    hints = typing.get_type_hints(run, include_extras=True)
+    base = [(name, hints[name], dataclasses.field(default=p.default)) if p.default is not inspect.Parameter.empty else (name, hints[name])
+            for name, p in inspect.signature(run).parameters.items()]
+    docs = _arg_docs(run)
+    base = [(b[0], Annotated[b[1], tyro.conf.arg(help=docs.get(b[0]))], *b[2:]) for b in base]
+    groups = [(name, Annotated[spec.config, tyro.conf.arg(help=f"Options of the {name} stage: {spec.description}.")],
+               dataclasses.field(default_factory=lambda d=defaults.get(name) or spec.config(): d))
+              for name, spec in sorted(registry.items()) if name not in dict.fromkeys(b[0] for b in base)]
+    return dataclasses.make_dataclass("RunCommand", base + groups)
+
+
+def _arg_docs(fn) -> "dict[str, str]":
+    """``Args:`` entries of a Google-style docstring."""
+    import re
+
+    section = (fn.__doc__ or "").split("Args:", 1)[-1]
+    from nerfpipe.commands.helptext import plain
+
+    return {m.group(1): plain(m.group(2)) for m in re.finditer(r"^\s{8}(\w+): (.+?)(?=^\s{8}\w+: |\Z)", section, re.S | re.M)}
+
+
+def _option_value(argv: "list[str]", name: str) -> "str | None":
+    for i, arg in enumerate(argv):
+        if arg == name and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith(name + "="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def run_main(argv: "list[str]") -> int:
+    """``nerfpipe run PATH [--stages ...|--pipeline FILE] [--STAGE.OPTION VALUE ...]``: a pipeline file's
+    options are the defaults, the command line changes them."""
     from nerfpipe.errors import NerfpipeError
 
-    if not Path(path).exists():
-        raise NerfpipeError("no such file or folder", path)
     console = _console()
+    registry = installed_stages(console)
+    toml = _option_value(argv, "--pipeline")
+    defaults = dict(_pipeline(None, Path(toml), registry).configs) if toml is not None and "--help" not in argv else {}
+    cmd = tyro.cli(run_command_type(registry, defaults), args=argv, prog="nerfpipe run")
+    if not Path(cmd.path).exists():
+        raise NerfpipeError("no such file or folder", cmd.path)
     _log_to(console)
-    pipe = _pipeline(stages, pipeline, installed_stages(console))
-    run_dir = out if out is not None else Path("runs") / Path(path).stem
-    run_and_print(pipe, path, run_dir, console, resume=resume, device=device, time_budget=time_budget)
+    pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
+    pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
+    run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
+    run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=cmd.device, time_budget=cmd.time_budget)
     return 0
 
 
@@ -238,29 +288,70 @@ def _many_table(outcomes):
 
 
 def stage(name: Annotated[str, Positional], run_dir: Annotated[Path, Positional]) -> int:
-    """Re-run one stage alone in an existing run folder (with the options it last ran with).
+    """Re-run one stage alone in an existing run folder (with the options it last ran with, or as given).
 
     Args:
-        name: stage name (see ``nerfpipe stages``).
+        name: stage name (see ``nerfpipe stages``); ``nerfpipe stage NAME --help`` lists its options.
         run_dir: a run folder made by ``nerfpipe run``.
     """
+    return 2  # never called: ``nerfpipe stage ...`` is parsed by :func:`stage_main`, from the stage's config
+
+
+def stage_command_type(registry: dict, last: "dict[str, object]") -> object:
+    """One subcommand per stage: ``RUN_DIR`` and every field of the stage's config as an option (nested
+    configs with their prefix), at the values of ``last`` (the options it last ran with) or the defaults."""
+    import dataclasses
+    from typing import Union
+
+    members = []
+    for name, spec in sorted(registry.items()):
+        default = last.get(name) or spec.config()
+        options = Annotated[spec.config, tyro.conf.arg(name="")]  # the stage's own fields unprefixed, nested ones prefixed
+        cls = dataclasses.make_dataclass(f"Stage_{name}", [
+            ("run_dir", Annotated[Path, Positional, tyro.conf.arg(metavar="RUN_DIR", help="A run folder made by nerfpipe run.")]),
+            ("options", options, dataclasses.field(default_factory=lambda d=default: d)),
+        ])
+        cls.stage_name = name
+        members.append(Annotated[cls, tyro.conf.subcommand(name, description=spec.description)])
+    return Union[tuple(members)]  # noqa: UP007 (a runtime-built union)
+
+
+def _positionals(argv: "list[str]") -> "list[str]":
+    return [a for a in argv if not a.startswith("-")]
+
+
+def stage_main(argv: "list[str]") -> int:
+    """``nerfpipe stage NAME RUN_DIR [--OPTION VALUE ...]``: the stage's options start at the values it last
+    ran with in RUN_DIR (its marker), the command line changes them."""
     from nerfpipe.errors import NerfpipeError
     from nerfpipe.runlock import run_lock
     from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, marker_path, read_marker, run_stage
 
     console = _console()
+    registry = installed_stages(console)
+    words = _positionals(argv)
+    if words and words[0] not in registry:
+        raise NerfpipeError(f"unknown stage '{words[0]}' (installed: {', '.join(sorted(registry))})")
+    last, source = {}, None
+    if len(words) >= 2 and words[0] in registry and "--help" not in argv and "-h" not in argv:
+        name, run_dir = words[0], Path(words[1])
+        record = run_dir / RUN_RECORD
+        if not record.is_file():
+            raise NerfpipeError(f"not a run folder (no {RUN_RECORD})", run_dir)
+        try:
+            source = json.loads(record.read_text())["source"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise NerfpipeError(f"not a run record ({type(exc).__name__}: {exc})", record) from exc
+        ctx = Pipeline([name], registry=registry).context(run_dir, source)
+        done = read_marker(ctx, name)
+        if done:
+            last[name] = make_config(registry[name], done.get("config"), marker_path(ctx, name))
+    parsed = tyro.cli(stage_command_type(registry, last), args=argv, prog="nerfpipe stage")
+    name, run_dir = parsed.stage_name, Path(parsed.run_dir)
     _log_to(console)
-    record = Path(run_dir) / RUN_RECORD
-    if not record.is_file():
-        raise NerfpipeError(f"not a run folder (no {RUN_RECORD})", run_dir)
-    try:
-        source = json.loads(record.read_text())["source"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise NerfpipeError(f"not a run record ({type(exc).__name__}: {exc})", record) from exc
-    pipe = Pipeline([name], registry=installed_stages(console))
+    pipe = Pipeline([name], registry=registry)
     ctx = pipe.context(run_dir, source)
-    done = read_marker(ctx, name)
-    config = make_config(pipe.specs[0], done.get("config"), marker_path(ctx, name)) if done else pipe.configs[name]
+    config = parsed.options  # checked by its own __post_init__ when tyro made it
     with run_lock(run_dir):  # not while a run or another stage works in this folder
         rec = run_stage(pipe.specs[0], config, ctx)
     console.print(f"stage {rec.name}: {rec.status} in {rec.seconds:.1f} s -> {', '.join(rec.artifacts) or 'nothing'}")

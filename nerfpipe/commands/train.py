@@ -1,102 +1,107 @@
-"""``nerfpipe train``: fit a registered model to a dataset into a run folder."""
+"""``nerfpipe train``: fit a registered model to a dataset into a run folder.
 
+The options are generated from the config dataclasses (tyro), so none is restated here: every field of
+:class:`~nerfpipe.trainer.TrainerConfig` is ``--FIELD`` (``--iters``, ``--time-budget``, ...) and every field
+of the chosen model's config is ``--model.FIELD``, nested as the config nests (``--model.occupancy.resolution``),
+each with its attribute docstring as help. ``--model NAME`` picks a model or a named preset
+(:func:`nerfpipe.models.registry.presets`: ``fast``, ``fast-small``, ..., ``vanilla``), whose values are the
+defaults ``--help`` shows (``nerfpipe train --model vanilla --help``).
+"""
+
+import dataclasses
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated
 
-from tyro.conf import Positional
+import tyro
+from tyro.conf import OmitArgPrefixes, Positional
+
+from nerfpipe.trainer import TrainerConfig
+
+DEFAULT_MODEL = "fast"
 
 
-def train(
-    path: Positional[Path],
-    model: str = "fast",
-    out: "Path | None" = None,
-    iters: int = 1000,
-    time_budget: "float | None" = None,
-    clock: Literal["wall", "cpu"] = "wall",
-    rays_per_step: int = 4096,
-    lr: float = 5e-4,
-    num_samples: "int | None" = None,
-    eval_every: int = 100,
-    checkpoint_every: int = 500,
-    eval_scale: float = 1.0,
-    final_eval_views: int = 0,
-    video_frames: int = 60,
-    video_scale: float = 1.0,
-    background: str = "auto",
-    seed: int = 0,
-    device: str = "cpu",
-    threads: "int | None" = None,
-    resume: bool = False,
-    view: bool = False,
-    view_port: int = 7007,
-) -> int:
-    """Train a NeRF on a dataset (any format data_adapters.load reads).
+@dataclass
+class TrainCommand:
+    """Train a radiance field on a dataset into a run folder: metrics.json, psnr.png, progress.png,
+    cameras.png, orbit.gif/mp4, depth_orbit.gif. Under --time-budget the whole command keeps to it (training,
+    the final evaluation and the videos, sized to fit: metrics.json budget_plan); nerfpipe eval RUN scores
+    every view at full size afterwards. Data-parallel on N processes or GPUs: torchrun --nproc-per-node N -m
+    nerfpipe train PATH ... (--rays-per-step is the total over the processes; add --max-restarts K to torchrun
+    to resume from the last checkpoint after a process dies)."""
 
-    Data-parallel on N processes or GPUs: ``torchrun --nproc-per-node N -m nerfpipe train PATH ...``
-    (``--rays-per-step`` is the total over the processes; add ``--max-restarts K`` to torchrun to
-    resume from the last checkpoint after a process dies).
+    path: Positional[Path]
+    """Dataset file or folder (any format nerfpipe reads)."""
+    model: str = DEFAULT_MODEL
+    """Model or named preset: a registered model (fast, vanilla, ...) or fast-small / fast-medium / fast-large.
+    Its values are the defaults of the --model.* options."""
+    out: "Path | None" = None
+    """Run folder (default: runs/<dataset>-<model>)."""
+    trainer: OmitArgPrefixes[TrainerConfig] = field(default_factory=TrainerConfig)
+    """How to train."""
+    view: bool = False
+    """Watch the training in the browser (nerfpipe view's viewer: live render and PSNR curves, at most 4 % of
+    the training time; needs nerfpipe[viewer])."""
+    view_port: int = 7007
+    """Port of the viewer (0: any free one)."""
 
-    Args:
-        path: dataset file or folder.
-        model: registered model name (see the nerfpipe.models entry points): ``fast`` (the CPU
-            default: grids + occupancy grid) or ``vanilla`` (the classic MLP; course recipe: 10k rays).
-        out: run folder (default: runs/<dataset>-<model>).
-        iters: training iterations.
-        time_budget: wall-clock seconds for the whole command, final evaluation and videos included: training
-            stops with a quarter of it left, and the final evaluation and videos are sized to fit (recorded in
-            metrics.json ``budget_plan``; ``nerfpipe eval RUN`` scores every view at full size afterwards).
-        clock: what the budget counts: wall seconds, or process CPU seconds / threads (steadier on a busy machine).
-        rays_per_step: rays per iteration, drawn across all training images.
-        lr: Adam learning rate.
-        num_samples: samples per ray (default: the model's).
-        eval_every: validate every this many iterations.
-        checkpoint_every: write the checkpoint every this many iterations (and at the end).
-        eval_scale: resolution factor of validation renders.
-        final_eval_views: val views scored at the end (0: all).
-        video_frames: frames of orbit.gif/mp4 and depth_orbit.gif (0: none).
-        video_scale: resolution factor of the videos.
-        background: black | white | random | auto (random for RGBA training, else black).
-        seed: random seed (CPU runs are deterministic).
-        device: torch device.
-        threads: CPU threads for torch (default: torch's choice).
-        resume: continue from the run folder's checkpoint.
-        view: watch the training in the browser (nerfpipe view's viewer: live render and PSNR curves,
-            at most 4 % of the training time; needs nerfpipe[viewer]).
-        view_port: port of the viewer (0: any free one).
-    """
-    import dataclasses
 
-    from nerfpipe.data_adapters import load
+def command_type(model: str) -> type:
+    """:class:`TrainCommand` with a ``--model.*`` group for ``model``'s config, at the preset's values."""
+    from nerfpipe.models.registry import get_preset
+
+    preset = get_preset(model)
+    config = preset.config
+    options = Annotated[type(config), tyro.conf.arg(name="model", help=f"Options of the {preset.model} model (preset {model}).")]
+    trainer = OmitArgPrefixes[TrainerConfig]
+    return dataclasses.make_dataclass(
+        "TrainCommand",
+        [("trainer", trainer, field(default_factory=lambda: dataclasses.replace(TrainerConfig(), **preset.trainer))),
+         ("model_options", options, field(default_factory=lambda: config))],
+        bases=(TrainCommand,),
+    )
+
+
+def model_name(argv: "list[str]") -> str:
+    """The value of ``--model`` on a command line (the default without one)."""
+    for i, arg in enumerate(argv):
+        if arg == "--model" and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith("--model="):
+            return arg.split("=", 1)[1]
+    return DEFAULT_MODEL
+
+
+def main(argv: "list[str]") -> int:
+    """Parse ``nerfpipe train ARGV`` from the configs and train."""
+    cmd = tyro.cli(command_type(model_name(argv)), args=argv, prog="nerfpipe train")
+    return train(cmd)
+
+
+def train(cmd: TrainCommand) -> int:
+    """Train as ``cmd`` says; its ``time_budget`` counts from the process's start."""
+    import time
 
     from nerfpipe import evaluation
-    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
-    from nerfpipe.models.registry import get_model
+    from nerfpipe.data_adapters import load
+    from nerfpipe.errors import require_all
+    from nerfpipe.models.registry import get_preset
     from nerfpipe.paths import check_output_folder
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.trainer import Trainer
 
-    spec = get_model(model)
-    model_cfg = spec.config()
-    refuse_unless([("num_samples", num_samples is None or num_samples >= 1, "at least 1", num_samples)])
-    if num_samples is not None:
-        if not any(f.name == "num_samples" for f in dataclasses.fields(model_cfg)):
-            raise NerfpipeError(f"--num-samples does not apply to the '{model}' model (it places samples itself)")
-        model_cfg = dataclasses.replace(model_cfg, num_samples=num_samples)
-    cfg = TrainerConfig(
-        iters=iters, wall_budget=time_budget, clock=clock, rays_per_step=rays_per_step, lr=lr, eval_every=eval_every, checkpoint_every=checkpoint_every,
-        eval_scale=eval_scale, final_eval_views=final_eval_views, video_frames=video_frames,
-        video_scale=video_scale, background=background, seed=seed, device=device, num_threads=threads, resume=resume,
-    )
-    out = check_output_folder(Path(out) if out is not None else Path("runs") / f"{Path(path).stem}-{model}")
-    require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if view else ()))  # before the dataset is read
-    scene = load(path)
-    if time_budget is not None:  # the budget counts from the process's start: imports and reading the dataset are part of it
-        cfg = dataclasses.replace(cfg, wall_budget=max(0.0, time_budget - process_age()))
-    trainer = Trainer(cfg, scene, model, model_cfg, out)
+    started = time.monotonic() - process_age()
+    name = get_preset(cmd.model).model
+    cfg = cmd.trainer
+    out = check_output_folder(Path(cmd.out) if cmd.out is not None else Path("runs") / f"{Path(cmd.path).stem}-{cmd.model}")
+    require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if cmd.view else ()))  # before the dataset is read
+    scene = load(cmd.path)
+    trainer = Trainer(cfg, scene, name, cmd.model_options, out, started=started)
     watcher = None
-    if view and trainer.world.writer:  # rank 0 of a torchrun group shows it
+    if cmd.view and trainer.world.writer:  # rank 0 of a torchrun group shows it
         from nerfpipe.viewer.training import watch
 
-        watcher = watch(trainer, port=view_port)
+        watcher = watch(trainer, port=cmd.view_port)
     try:
         metrics = trainer.train()
     finally:
@@ -104,7 +109,7 @@ def train(
             watcher.viewer.stop()  # the page closes with the training
     if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
         return 0
-    print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f}, "
+    print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f} on {metrics['val_views']} views, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")
     return 0
 
@@ -121,3 +126,7 @@ def process_age() -> float:
         return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
     except (OSError, ValueError, IndexError):
         return 0.0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main(sys.argv[1:]))

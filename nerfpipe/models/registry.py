@@ -1,5 +1,7 @@
 """Registered models: everything in the ``nerfpipe.models`` entry-point group (built-ins included)."""
 
+from dataclasses import dataclass
+
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.base import ModelSpec
 from nerfpipe.registry import MODEL_GROUP, discover
@@ -15,4 +17,38 @@ def get_model(name: str) -> ModelSpec:
     found = models()
     if name not in found:
         raise NerfpipeError(f"unknown model '{name}'; registered: {', '.join(sorted(found)) or 'none'}")
+    return found[name]
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named default of ``nerfpipe train`` and the bench: a model, its config and trainer options."""
+
+    model: str
+    """Registered model name."""
+    config: object
+    """The model's config."""
+    trainer: dict
+    """TrainerConfig fields that differ from its defaults."""
+
+
+TRAINER_DEFAULTS = {"fast": {"rays_per_step": 4096}, "vanilla": {"rays_per_step": 1024}}
+"""Trainer options the built-in models are trained with by default (their measured recipes: README)."""
+
+
+def presets() -> "dict[str, Preset]":
+    """Named defaults: every registered model under its own name, and ``fast-<size>`` for each capacity
+    preset of the fast field (:data:`nerfpipe.models.fast.PRESETS`)."""
+    from nerfpipe.models.fast import PRESETS, FastConfig
+
+    found = {name: Preset(name, spec.config(), TRAINER_DEFAULTS.get(name, {})) for name, spec in models().items()}
+    found.update({f"fast-{size}": Preset("fast", FastConfig(preset=size), TRAINER_DEFAULTS["fast"]) for size in PRESETS})
+    return found
+
+
+def get_preset(name: str) -> Preset:
+    """The named default ``name``, or a user error listing them."""
+    found = presets()
+    if name not in found:
+        raise NerfpipeError(f"unknown model '{name}'; registered models and presets: {', '.join(sorted(found))}")
     return found[name]

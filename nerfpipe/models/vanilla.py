@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from nerfpipe.errors import refuse_unless
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.functional.sampling import merge_edges, pdf_samples, stratified_samples
 from nerfpipe.functional.volrend import composite, render_weights
@@ -30,6 +31,11 @@ class VanillaConfig:
     """Near bound; ``None`` takes the scene's."""
     far: "float | None" = None
     """Far bound; ``None`` takes the scene's."""
+
+    def __post_init__(self) -> None:
+        """Impossible sample counts are one clear error when configured (from the CLI, a pipeline file, Python)."""
+        refuse_unless([("num_samples", self.num_samples >= 1, "at least 1", self.num_samples),
+                       ("num_importance", self.num_importance >= 0, "0 or more", self.num_importance)])
 
     def setup(self, scene_info: SceneInfo) -> "VanillaModel":
         return VanillaModel(self, scene_info)

@@ -6,13 +6,13 @@ trainer writes none here.
 
 Resume: when the stage runs again (interrupted, or with more ``iters`` or a new time budget) and
 ``train/checkpoint.safetensors`` holds the same model, model options and training options (``iters``
-and ``time_budget`` aside), training continues from that checkpoint; otherwise it starts afresh.
+and the budgets aside), training continues from that checkpoint; otherwise it starts afresh.
 
 Under torchrun every process runs this stage (it is *collective*, :mod:`nerfpipe.distributed`): rank 0
 decides resume and budget and sends them, and alone clears or writes ``train/``.
 
-Time budget: the trainer's ``time_budget`` (training seconds, validation excluded) is the smaller
-of ``trainer.time_budget`` and ``budget_share`` of what is left of the pipeline's budget.
+Time budget: the trainer's ``train_budget`` (training seconds, validation excluded) is the smaller
+of ``trainer.train_budget`` and ``budget_share`` of what is left of the pipeline's budget.
 """
 
 import json
@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from nerfpipe import checkpoint, evaluation
+from nerfpipe.configs import JsonTable
 from nerfpipe.errors import NerfpipeError, refuse_unless
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
@@ -28,7 +29,7 @@ from nerfpipe.trainer import TrainerConfig
 TRAIN_DIR = "train"
 CHECKPOINT = f"{TRAIN_DIR}/{checkpoint.CHECKPOINT}"
 METRICS = f"{TRAIN_DIR}/metrics.json"
-_RESUMABLE_CHANGES = ("iters", "time_budget", "wall_budget", "resume", "device", "video_frames")
+_RESUMABLE_CHANGES = ("iters", "train_budget", "time_budget", "resume", "device", "video_frames")
 """Trainer options that may differ between a checkpoint and the run that continues it."""
 
 
@@ -38,8 +39,9 @@ class TrainStageConfig:
 
     model: str = "fast"
     """Registered model name (``nerfpipe.models`` entry points); ``fast`` in pipelines, ``vanilla`` for reference."""
-    model_options: dict = field(default_factory=dict)
-    """Overrides of the model's config, nested as the config is (e.g. ``{"field": {"width": 64}}``)."""
+    model_options: JsonTable = field(default_factory=dict)
+    """Overrides of the model's config, nested as the config is (e.g. ``{"field": {"width": 64}}``; JSON on the
+    command line)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(rays_per_step=4096, video_frames=0, eval_max_size=400))
     """Training options (``device`` comes from the pipeline; videos are the render stage's). Defaults as
     ``nerfpipe train`` and the bench: 4096 rays per step; validation renders at most 400 pixels on the
@@ -69,11 +71,11 @@ def model_config(name: str, options: dict):
 
 
 def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfig:
-    budget, left = config.trainer.time_budget, ctx.time_left()
+    budget, left = config.trainer.train_budget, ctx.time_left()
     if left is not None:
         share = config.budget_share * left
         budget = share if budget is None else min(budget, share)
-    return replace(config.trainer, time_budget=budget, device=ctx.device, video_frames=0)
+    return replace(config.trainer, train_budget=budget, device=ctx.device, video_frames=0)
 
 
 def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> bool:
