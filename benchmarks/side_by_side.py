@@ -62,7 +62,7 @@ def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...]]":
 
 
 def main(cfg: SideBySideConfig) -> "list[dict]":
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation
     from nerfpipe.trainer import Trainer, TrainerConfig
