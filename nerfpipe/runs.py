@@ -62,7 +62,8 @@ def model_dir(run_dir: Path) -> Path:
 def load_run(run_dir: Path, device: str = "cpu"):
     """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode.
 
-    Run folders are passed around: a malformed ``config.json``, a checkpoint of another model or one
+    ``run_dir`` is a folder of ``nerfpipe train`` or of ``nerfpipe run`` (its ``train/``: :func:`model_dir`),
+    so every command that reads a run takes either. Run folders are passed around: a malformed ``config.json``, a checkpoint of another model or one
     with tensors missing or of other shapes is a :class:`NerfpipeError` naming the file.
     """
     from nerfpipe.data_adapters import load
@@ -71,6 +72,7 @@ def load_run(run_dir: Path, device: str = "cpu"):
     from nerfpipe.models.registry import get_model
     from nerfpipe.trainer import scene_info
 
+    run_dir = model_dir(run_dir)
     cfg = read_config(run_dir)
     ckpt_path = find_checkpoint(run_dir)
     if ckpt_path is None:

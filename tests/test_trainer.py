@@ -148,6 +148,13 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     assert result["psnr"] == pytest.approx(metrics["val_psnr"], abs=1e-5)  # the trainer's protocol without a budget: the same scores
     assert result["lpips"] is None or 0 <= result["lpips"] <= 1
 
+    pipeline_layout = tmp_path / "piperun"  # nerfpipe run's layout: the trained model in train/
+    pipeline_layout.mkdir()
+    run.rename(pipeline_layout / "train")
+    assert main(["eval", str(pipeline_layout), "--views", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["per_view"][0] == result["per_view"][0]
+    assert (pipeline_layout / "train" / "eval.json").is_file()
+
 
 def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"

@@ -19,7 +19,7 @@ def eval_run(
     Writes RUN_DIR/eval.json.
 
     Args:
-        run_dir: a run folder of nerfpipe train, or of nerfpipe run (its train/ folder is used).
+        run_dir: a run folder of nerfpipe train or nerfpipe run (its train/ folder).
         views: the first this many views of the evaluation split (0: all).
         scale: resolution factor of the renders (ground truth is area-resized to match).
         max_size: longer side of the renders in pixels at most (none: full size).

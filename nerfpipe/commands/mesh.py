@@ -31,7 +31,7 @@ def mesh(
     mesh.json (level, face counts, Hausdorff distance of the simplification, timings).
 
     Args:
-        run_dir: a run folder written by nerfpipe train.
+        run_dir: a run folder written by nerfpipe train or nerfpipe run.
         method: tsdf (fuse the depth where rendered training rays stop; the default) or mc (marching cubes on the density).
         resolution: grid samples (mc) or TSDF voxels (tsdf) along the longest side of the box.
         faces: face count of mesh_simplified.ply (default 100000; a copy when the mesh is smaller).

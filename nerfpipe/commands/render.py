@@ -19,7 +19,7 @@ def render(
     """Render a camera path of a trained run into RUN_DIR/renders/.
 
     Args:
-        run_dir: a run folder written by nerfpipe train.
+        run_dir: a run folder written by nerfpipe train or nerfpipe run.
         path: test (the dataset's test poses; orbit when it has none), orbit (around the scene centre), or a
             camera_path.json file (nerfstudio's format, as ``nerfpipe view`` saves it; see nerfpipe/camera_path.py),
             written as renders/<file name>.gif/mp4 at the file's fps and size.
