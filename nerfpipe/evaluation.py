@@ -86,7 +86,8 @@ then the videos get what is left)."""
 MIN_FINAL_VIEWS = 4
 """Under a budget, the final evaluation scores at least this many views (smaller ones when they do not fit)."""
 MIN_VIDEO_FRAMES = 12
-"""Under a budget, the videos keep at least this many frames (smaller ones when they do not fit)."""
+"""Under a budget, the videos keep at least this many frames (smaller ones when they do not fit; none when even
+that does not fit)."""
 VALIDATION_SHARE = 0.1
 """Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
 of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
@@ -247,7 +248,7 @@ def _video(trainer, metrics: dict, plan: dict) -> None:
         fit = _fit(cfg.video_frames, min(MIN_VIDEO_FRAMES, cfg.video_frames), per_frame, (1 - ENCODE_SHARE) * left, at_least=0)
         w, h = max(1, round(w * fit.scale)), max(1, round(h * fit.scale))
         plan["video"] = {"frames": fit.frames, "of": cfg.video_frames, "scale": fit.scale, "size": [w, h], "estimated_seconds": fit.estimated_seconds}
-        if fit.frames < 2:
+        if fit.frames < min(MIN_VIDEO_FRAMES, cfg.video_frames):  # a shorter orbit shows nothing: none at all
             plan["video"]["skipped"] = "no time left in the budget"
             return
         cams = path_cameras(trainer.scene, "test", fit.frames)
