@@ -104,17 +104,22 @@ def eval_views(scene, num_views: int = 0) -> "list[int]":
 
 
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
-                deadline: "float | None" = None, lpips=None) -> dict:
+                deadline: "float | None" = None, lpips=None, progress: bool = False) -> dict:
     """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
     with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
 
     Returns the per-view ``psnr``, ``ssim``, ``fitted_psnr`` lists, the render ``seconds`` and ``pixels``
     (for the time one pixel takes), with ``keep_first`` the first rendered view as ``first``, and with an
-    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``.
+    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr.
     """
     out = {"psnr": [], "ssim": [], "fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
     cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
-    for i, (w, h) in enumerate(sizes):
+    views = enumerate(sizes)
+    if progress:
+        from nerfpipe.progress import track
+
+        views = track(views, "eval", total=len(sizes))
+    for i, (w, h) in views:
         if i and deadline is not None and time.monotonic() > deadline:
             break
         start = time.perf_counter()

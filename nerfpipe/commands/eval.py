@@ -48,7 +48,7 @@ def eval_run(
     bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
     lpips, lpips_note = lpips_scorer(device)
     start = time.perf_counter()
-    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips)
+    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json)
     result = {
         "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}),
         "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
