@@ -79,7 +79,7 @@ def torchrun(scene: Path, out: Path, iters: int, pause: float = 0.0, restarts: i
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", f"--max-restarts={restarts}",
            str(script), str(scene), str(out), json.dumps(MODEL), json.dumps(cfg), str(pause)]
     log = open(out.parent / "torchrun.log", "wb")  # a file, not a pipe: a child never blocks on a full pipe
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])), "OMP_NUM_THREADS": "1"}
     return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
 
 
@@ -191,7 +191,7 @@ def test_the_pipeline_under_torchrun_trains_on_every_rank_and_rank_0_alone_write
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "nerfpipe", "run",
            str(scene), "--pipeline", str(toml), "--out", str(out)]
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     assert proc.stdout.count("nerfpipe run:") == 1  # one summary table: rank 0's

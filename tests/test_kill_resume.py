@@ -81,7 +81,7 @@ def kill_at(point: str, scene: Path, run_dir: Path, tmp_path: Path) -> None:
     cmd = [sys.executable, "-c", KILLED, point, str(scene), str(run_dir), str(marker), json.dumps(CONFIGS)]
     log = tmp_path / f"child-{point}.log"  # a file, not a pipe: a child never blocks on a full pipe
     with open(log, "wb") as out:
-        proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}, stdout=out, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 120
     while not marker.exists():
         if proc.poll() is not None or time.monotonic() > deadline:

@@ -52,7 +52,7 @@ def one_stage(calls: list) -> "dict[str, StageSpec]":
 def holding(run_dir: Path, tmp_path: Path) -> subprocess.Popen:
     """A process that holds the folder's lock until killed (returns once it holds it)."""
     marker = tmp_path / f"holding-{time.monotonic_ns()}"
-    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(run_dir), str(marker)], env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(run_dir), str(marker)], env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
     deadline = time.monotonic() + 60
     while not marker.exists():
         assert proc.poll() is None and time.monotonic() < deadline, "the holder died before taking the lock"
@@ -67,7 +67,7 @@ def test_a_second_process_is_refused_and_a_killed_holder_leaves_no_stale_lock(ti
         with pytest.raises(NerfpipeError, match=f"in use by nerfpipe process {proc.pid} on "):
             Pipeline(["a"], registry=one_stage(calls)).run(None, run_dir)
         cli = subprocess.run([sys.executable, "-m", "nerfpipe", "run", str(tiny), "--stages", "load", "--out", str(run_dir)],
-                             capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+                             capture_output=True, text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
         assert cli.returncode == 2 and len(cli.stderr.strip().splitlines()) == 1, cli.stderr
         assert "in use by nerfpipe process" in cli.stderr and "Traceback" not in cli.stderr
         assert calls == [] and sorted(p.name for p in run_dir.iterdir()) == [LOCK_FILE]  # nothing written

@@ -166,7 +166,7 @@ Pipeline(["a", "b", "c"], registry=reg).run(None, {run_dir!r})
 
 def test_killed_run_resumes_from_last_finished_stage(tmp_path):
     script = KILLED_RUN.format(tests=str(Path(__file__).parent), run_dir=str(tmp_path))
-    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
     deadline = time.monotonic() + 120
     while not (tmp_path / "b.started").exists():
         assert proc.poll() is None and time.monotonic() < deadline, "the child died before stage b started"
