@@ -10,7 +10,7 @@
 3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
    each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
    the largest pixel difference (of 255) between the two.
-4. **Training overhead** (``--train DATASET``): ``nerfpipe train DATASET --iters N --threads 1 --clock cpu``
+4. **Training overhead** (``--train DATASET``): ``nerfpipe train DATASET --iters N --num-threads 1 --clock cpu``
    alone and with ``--view`` and a browser watching (its camera turned every few seconds), alternately
    ``--repeats`` times each: iterations per training second of each. The CPU clock (process CPU
    seconds: training, the live render between steps and viser's threads, not the browser's process)
@@ -167,7 +167,7 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
 
 def _train(dataset: Path, out: Path, iters: int, view: bool, tmp: Path) -> float:
     args = [*PY, "train", str(dataset), "--out", str(out), "--iters", str(iters), "--video-frames", "0", "--eval-every", "0", "--final-eval-views", "1", "--eval-scale", "0.25",
-            "--threads", "1", "--clock", "cpu"]
+            "--num-threads", "1", "--clock", "cpu"]
     if view:
         args += ["--view", "--view-port", "7118"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env())

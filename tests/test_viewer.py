@@ -53,7 +53,7 @@ def synth(tmp_path_factory):
 @pytest.fixture(scope="module")
 def run(synth, tmp_path_factory):
     out = tmp_path_factory.mktemp("viewer") / "run"
-    args = ["train", str(synth), "--model", "vanilla", "--out", str(out), "--iters", "2", "--rays-per-step", "32", "--num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
+    args = ["train", str(synth), "--model", "vanilla", "--out", str(out), "--iters", "2", "--rays-per-step", "32", "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0"]
     assert main(args) == 0
     return out
 
@@ -273,7 +273,7 @@ def test_a_watched_training_trains_as_an_unwatched_one(synth, tmp_path):
 def test_train_view_on_the_command_line_serves_and_closes(synth, tmp_path, capsys):
     _viser()
     args = ["train", str(synth), "--model", "vanilla", "--out", str(tmp_path / "run"), "--iters", "2", "--rays-per-step", "32",
-            "--num-samples", "8", "--video-frames", "0", "--eval-every", "0", "--view", "--view-port", "0"]  # fmt: skip
+            "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0", "--view", "--view-port", "0"]  # fmt: skip
     assert main(args) == 0
     out = capsys.readouterr().out
     url = out.split("watching the training at ")[1].split()[0]

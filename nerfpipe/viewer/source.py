@@ -43,7 +43,7 @@ def model_renderer(model, background, device: str, chunk: int = 4096) -> "Callab
 
 def open_source(path: Path, device: str = "cpu") -> ViewSource:
     """A run folder (its scene, model and mesh) or a dataset; either is refused with one line when unreadable."""
-    from data_adapters import load
+    from nerfpipe.data_adapters import load
 
     from nerfpipe.pixel_sampler import background_colors
     from nerfpipe.runs import load_run
