@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 
 from nerfpipe import distributed
+from nerfpipe.cameras import Cameras
 from nerfpipe.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.devices import check_device
 from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
@@ -138,7 +139,7 @@ def scene_info(scene: SceneData) -> SceneInfo:
                      unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, pixel_footprint=pixel_footprint(cams, scene.aabb))
 
 
-def pixel_footprint(cams: "Cameras", aabb: Float[Tensor, "2 3"]) -> float:
+def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
     """Median over cameras of (distance to the box centre) / (focal length in pixels): one pixel's width there."""
     if not len(cams):
         return 0.0

@@ -45,9 +45,10 @@ APPEARANCE_FOCAL_SPREAD = 0.3
 MAX_LEVELS = 5
 """Grid levels of an ``auto`` field at most (each level costs a gather per sample)."""
 
-MAX_FINEST = 512
+MAX_FINEST = 256
 """Vertices along the box of an ``auto`` field's finest level at most: samples are spaced by half its voxel,
-so a finer level multiplies the samples per ray (colmap_mouse's 1920x1440 photographs would ask for 1024)."""
+so a finer level multiplies the samples per ray. colmap_mouse's 1920x1440 photographs would ask for 1024; at 512
+its ``nerfpipe run --time-budget 300`` trained 252 steps (val PSNR 22.42 dB), at 256 791 steps (24.28 dB)."""
 
 
 def auto_capacity(info: SceneInfo) -> dict:
