@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from data_adapters import load
+from nerfpipe.data_adapters import load
 from nerfpipe.camera_path import CameraPath, Keyframe, path_from_keyframes, read_camera_path, write_camera_path
 from nerfpipe.cli import main
 from nerfpipe.orbit import look_at
