@@ -2,7 +2,7 @@
 machine's load (which varies 2-3x from hour to hour on shared machines) weighs on each alike: seconds
 per step as ratios, val PSNR at equal steps (deterministic on CPU), model MB and the finest voxel.
 
-Run: ``python -m benchmarks.side_by_side LEGO --variants "dense:preset='small'" "compact:" --marks 300 3000``.
+Run: ``python -m benchmarks.side_by_side LEGO --variants "dense:preset='small'" "compact:preset='compact'" --marks 300 3000``.
 A variant is ``NAME:OPTIONS`` with options ``KEY=VALUE`` separated by spaces (as ``benchmarks.steps``;
 ``preset=...`` sets the capacity preset, default ``auto``). Prints one JSON line per variant and mark,
 and appends them to ``--log`` when given.
@@ -31,7 +31,7 @@ from benchmarks.steps import model_config
 class SideBySideConfig:
     data: tyro.conf.Positional[Path]
     """Dataset (any supported format)."""
-    variants: "tuple[str, ...]" = ("dense:preset='small'", "compact:")
+    variants: "tuple[str, ...]" = ("dense:preset='small'", "compact:preset='compact'")
     """``NAME:OPTIONS`` per variant (options ``KEY=VALUE`` separated by spaces)."""
     marks: "tuple[int, ...]" = (300,)
     """Steps at which to validate."""

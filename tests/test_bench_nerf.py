@@ -82,7 +82,7 @@ def test_side_by_side_interleaves_variants_and_reports_size(scene_path, tmp_path
 
     assert parse_variant("dense:preset='small' levels=(8,16)") == ("dense", "small", ("levels=(8,16)",))
     assert parse_variant("compact:") == ("compact", "auto", ())
-    rows = main(SideBySideConfig(tiny_lego(scene_path, tmp_path), variants=("dense:preset='small' levels=(8,16)", "compact:log2_hashmap_size=9"),
+    rows = main(SideBySideConfig(tiny_lego(scene_path, tmp_path), variants=("dense:preset='small' levels=(8,16)", "compact:preset='compact' log2_hashmap_size=9"),
                                  marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads()))
     assert [r["name"] for r in rows] == ["dense", "compact"] and all(r["step"] == 3 and r["s_per_step"] > 0 for r in rows)
     assert rows[1]["model_mb"] < rows[0]["model_mb"]  # hashed into 512-row tables

@@ -10,7 +10,7 @@ from nerfpipe.data_adapters import load
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
-from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_capacity
+from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
 from nerfpipe.rays import RayBundle
 from nerfpipe.trainer import Trainer, TrainerConfig
 from reference import trilinear_loop
@@ -87,19 +87,19 @@ def test_levels_hash_only_above_the_row_budget():
         DenseGridEncoding([(4, 4, 4)], channels=1, max_rows=100)
 
 
-def test_auto_capacity_resolves_a_pixel_and_bounds_memory():
+def test_compact_capacity_resolves_a_pixel_and_bounds_memory():
     lego200 = info(num_images=100, pixels_per_image=200 * 200, pixel_footprint=2.0 / 200)
-    cap = auto_capacity(lego200)  # box side 2: a pixel is 1/200 of it
+    cap = compact_capacity(lego200)  # box side 2: a pixel is 1/200 of it
     assert cap["levels"][0] == 32 and cap["levels"][-1] == 200 and len(cap["levels"]) <= MAX_LEVELS
     assert list(cap["levels"]) == sorted(cap["levels"]) and cap["log2_hashmap_size"] == 17
-    model = FastConfig().setup(lego200)
+    model = FastConfig(preset="compact").setup(lego200)
     rows = sum(t.shape[0] for t in model.field.density_grid.tables)
     assert rows <= 32**3 + 3 * 2**17 and model.stats()["model_mb"] < 9  # dense, it would be 200^3 vertices
     assert model.stats()["finest_voxel"] == pytest.approx(2.0 / 199)
-    big = auto_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
+    big = compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
     assert big["levels"] == (32, 64, 128, 256)[: len(big["levels"])] and big["levels"][-1] == MAX_FINEST and big["log2_hashmap_size"] == 19
-    unknown = auto_capacity(info(num_images=10, pixels_per_image=300 * 300))  # no cameras: the image's side
-    assert unknown["levels"][-1] == min(300, MAX_FINEST) and unknown["log2_hashmap_size"] == 15
+    unknown = compact_capacity(info(num_images=10, pixels_per_image=300 * 300))  # no cameras: the image's side
+    assert unknown["levels"][-1] == min(300, MAX_FINEST) and unknown["log2_hashmap_size"] == 17
 
 
 def test_tighten_keeps_hashed_levels_and_checkpoints_round_trip():
@@ -125,6 +125,10 @@ def test_tighten_keeps_hashed_levels_and_checkpoints_round_trip():
 
 
 def test_capacity_follows_the_scene():
+    assert auto_preset(info(num_images=100, pixels_per_image=200 * 200)) == "small"
+    assert auto_preset(info(num_images=100, pixels_per_image=400 * 400)) == "medium"
+    assert auto_preset(info(num_images=300, pixels_per_image=800 * 800)) == "large"
+    assert FastConfig().setup(info()).field.density_grid.hash_rows == [None, None, None]  # auto: dense
     model = FastConfig(preset="small", levels=(8, 12)).setup(info())
     assert model.capacity["preset"] == "small" and [r[0] for r in model.field.density_grid.resolutions] == [8, 12]
     with pytest.raises(ValueError, match="unknown preset"):

@@ -34,28 +34,43 @@ PRESETS: "dict[str, dict]" = {
     "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64, log2_hashmap_size=None),
     "medium": dict(levels=(32, 64, 128, 192), feature_channels=4, hidden=64, log2_hashmap_size=None),
     "large": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64, log2_hashmap_size=None),
+    "compact": {},  # sized from the scene: compact_capacity
 }
-"""Dense capacity presets (every vertex stored): vertices per axis of each grid level along the box's
-longest side. ``auto`` (the default) sizes a hashed field from the scene instead: :func:`auto_capacity`."""
+"""Capacity presets. ``small``, ``medium``, ``large``: dense (every vertex stored), vertices per axis of each grid
+level along the box's longest side; ``auto`` (the default) picks one of them from the pixel count
+(:func:`auto_preset`). ``compact``: a hashed field sized from the scene (:func:`compact_capacity`)."""
+
+
+def auto_preset(info: SceneInfo) -> str:
+    """Dense capacity from the scene: more pixels of evidence afford finer grids.
+
+    The compact field is not the default yet: at equal steps it matches the dense field's PSNR with a
+    fifth of the memory (lego_200: 27.75 vs 27.76 dB at 300 steps, 8.2 vs 45.7 MB), but it shades more
+    samples per ray, so within a time budget it trains fewer steps (the synthetic demo: 627 vs 862 steps,
+    F-score 0.957 vs 0.981)."""
+    pixels = info.num_images * info.pixels_per_image
+    if pixels < 6e6:
+        return "small"
+    return "medium" if pixels < 24e6 else "large"
 
 
 APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
 MAX_LEVELS = 5
-"""Grid levels of an ``auto`` field at most (each level costs a gather per sample)."""
+"""Grid levels of a ``compact`` field at most (each level costs a gather per sample)."""
 
 MAX_FINEST = 256
-"""Vertices along the box of an ``auto`` field's finest level at most: samples are spaced by half its voxel,
+"""Vertices along the box of a ``compact`` field's finest level at most: samples are spaced by half its voxel,
 so a finer level multiplies the samples per ray. colmap_mouse's 1920x1440 photographs would ask for 1024; at 512
 its ``nerfpipe run --time-budget 300`` trained 252 steps (val PSNR 22.42 dB), at 256 791 steps (24.28 dB)."""
 
 
-def auto_capacity(info: SceneInfo) -> dict:
+def compact_capacity(info: SceneInfo) -> dict:
     """Capacity from the scene: the finest level resolves one training pixel at the box centre, the
     levels double from 32 vertices (at most :data:`MAX_LEVELS`, spaced evenly in log scale), and levels
     with more vertices than the scene's pixels can inform (a 32nd of them, as a power of two between
-    2^15 and 2^19) are hashed into tables of that many rows: memory follows the evidence and the
+    2^17 and 2^19; the synthetic demo at 2^15: F-score 0.859, at 2^18 0.957) are hashed into tables of that many rows: memory follows the evidence and the
     occupied space (hash collisions fall mostly on empty cells, which no ray samples), not the
     box's volume."""
     extent = float((info.aabb[1] - info.aabb[0]).max())
@@ -68,7 +83,7 @@ def auto_capacity(info: SceneInfo) -> dict:
     growth = (finest / 32) ** (1 / (count - 1))
     levels = tuple(int(round(32 * growth**i)) for i in range(count))
     pixels = max(info.num_images * info.pixels_per_image, 1)
-    log2_rows = int(min(19, max(15, round(math.log2(pixels / 32)))))
+    log2_rows = int(min(19, max(17, round(math.log2(pixels / 32)))))
     return dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
 
 
@@ -77,8 +92,9 @@ class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
 
     preset: str = "auto"
-    """Capacity: ``auto`` (a hashed field sized from the cameras' pixel footprint and the pixel count:
-    :func:`auto_capacity`), or a dense field: ``small``, ``medium`` or ``large``."""
+    """Capacity: ``auto`` (a dense preset chosen from image count and resolution), ``small``, ``medium``,
+    ``large`` (dense), or ``compact`` (a hashed field sized from the cameras' pixel footprint and the pixel count:
+    :func:`compact_capacity`)."""
     levels: "tuple[int, ...] | None" = None
     """Override the preset's grid levels (vertices along the box's longest side)."""
     log2_hashmap_size: "int | None" = None
@@ -171,8 +187,9 @@ class FastConfig:
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""
-        base = auto_capacity(scene_info) if self.preset == "auto" else PRESETS[self.preset]  # a known name: __post_init__
-        out = dict(base, preset=self.preset)
+        name = auto_preset(scene_info) if self.preset == "auto" else self.preset  # a known name: __post_init__
+        base = compact_capacity(scene_info) if name == "compact" else PRESETS[name]
+        out = dict(base, preset=name)
         for key in ("levels", "feature_channels", "hidden", "log2_hashmap_size"):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
