@@ -127,7 +127,7 @@ def test_tighten_keeps_hashed_levels_and_checkpoints_round_trip():
 def test_capacity_follows_the_scene():
     assert auto_preset(info(num_images=100, pixels_per_image=200 * 200)) == "small"
     assert auto_preset(info(num_images=100, pixels_per_image=400 * 400)) == "medium"
-    assert auto_preset(info(num_images=300, pixels_per_image=800 * 800)) == "large"
+    assert auto_preset(info(num_images=300, pixels_per_image=800 * 800)) == "compact"  # where large would be
     assert FastConfig().setup(info()).field.density_grid.hash_rows == [None, None, None]  # auto: dense
     model = FastConfig(preset="small", levels=(8, 12)).setup(info())
     assert model.capacity["preset"] == "small" and [r[0] for r in model.field.density_grid.resolutions] == [8, 12]
