@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 import tyro
 
-from benchmarks.steps import model_config
+from benchmarks.steps import append_log, model_config, trainer_config
 
 
 @dataclass
@@ -65,12 +65,11 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
     from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.trainer import Trainer
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
-    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
-                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
+    tcfg = trainer_config(cfg)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         runs = []
@@ -95,9 +94,7 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
                                  psnr=round(psnr, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
                                  samples_per_ray=round(stats["samples_per_ray"], 2), load=round(os.getloadavg()[0], 2)))
                 print(json.dumps(rows[-1]), flush=True)
-    if cfg.log is not None:
-        with open(cfg.log, "a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in rows)
+    append_log(cfg.log, rows)
     return rows
 
 

@@ -65,12 +65,11 @@ def main(cfg: StepsConfig) -> "list[dict]":
     from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation, runtime
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.trainer import Trainer
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
-    tcfg = TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
-                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
+    tcfg = trainer_config(cfg)
     rows, wall, cpu = [], 0.0, 0.0
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(tcfg, scene, "fast", model_config(cfg.preset, cfg.options), Path(tmp))
@@ -85,10 +84,23 @@ def main(cfg: StepsConfig) -> "list[dict]":
                              cpu=round(cpu / cfg.threads, 3), psnr=round(psnr, 3), samples_per_ray=round(trainer.model.stats()["samples_per_ray"], 2),
                              load=round(os.getloadavg()[0], 2), omp_wait=runtime.OMP_WAIT))
             print(json.dumps(rows[-1]), flush=True)
-    if cfg.log is not None:
-        with open(cfg.log, "a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in rows)
+    append_log(cfg.log, rows)
     return rows
+
+
+def trainer_config(cfg):
+    """The trainer of an A/B run: no validation, video or checkpoint of its own (``cfg``: ``StepsConfig``-like)."""
+    from nerfpipe.trainer import TrainerConfig
+
+    return TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
+                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
+
+
+def append_log(path: "Path | None", rows: "list[dict]") -> None:
+    """Append the JSON lines of ``rows`` to ``path`` (None: nothing)."""
+    if path is not None:
+        with open(path, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
 
 
 if __name__ == "__main__":

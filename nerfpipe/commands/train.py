@@ -97,16 +97,9 @@ def train(cmd: TrainCommand) -> int:
     require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if cmd.view else ()))  # before the dataset is read
     scene = load(cmd.path)
     trainer = Trainer(cfg, scene, name, cmd.model_options, out, started=started)
-    watcher = None
-    if cmd.view and trainer.world.writer:  # rank 0 of a torchrun group shows it
-        from nerfpipe.viewer.training import watch
+    from nerfpipe.viewer.training import train_watched
 
-        watcher = watch(trainer, port=cmd.view_port)
-    try:
-        metrics = trainer.train()
-    finally:
-        if watcher is not None:
-            watcher.viewer.stop()  # the page closes with the training
+    metrics = train_watched(trainer, cmd.view, cmd.view_port)
     if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
         return 0
     print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f} on {metrics['val_views']} views, "

@@ -38,7 +38,8 @@ PRESETS: "dict[str, dict]" = {
 }
 """Capacity presets. ``small``, ``medium``, ``large``: dense (every vertex stored), vertices per axis of each grid
 level along the box's longest side; ``auto`` (the default) picks ``small`` or ``medium`` from the pixel count,
-and ``compact`` where ``large`` would be (:func:`auto_preset`). ``compact``: a hashed field sized from the scene (:func:`compact_capacity`)."""
+and ``compact`` where ``large`` would be (:func:`auto_preset`). ``compact``: a hashed field sized from the scene
+(:func:`compact_capacity`)."""
 
 
 def auto_preset(info: SceneInfo) -> str:
@@ -73,9 +74,9 @@ def compact_capacity(info: SceneInfo) -> dict:
     """Capacity from the scene: the finest level resolves one training pixel at the box centre, the
     levels double from 32 vertices (at most :data:`MAX_LEVELS`, spaced evenly in log scale), and levels
     with more vertices than the scene's pixels can inform (a 32nd of them, as a power of two between
-    2^17 and 2^19; the synthetic demo at 2^15: F-score 0.859, at 2^18 0.957) are hashed into tables of that many rows: memory follows the evidence and the
-    occupied space (hash collisions fall mostly on empty cells, which no ray samples), not the
-    box's volume."""
+    2^17 and 2^19; the synthetic demo at 2^15: F-score 0.859, at 2^18 0.957) are hashed into tables of
+    that many rows: memory follows the evidence and the occupied space (hash collisions fall mostly on
+    empty cells, which no ray samples), not the box's volume."""
     extent = float((info.aabb[1] - info.aabb[0]).max())
     if info.pixel_footprint > 0:
         needed = extent / info.pixel_footprint

@@ -106,16 +106,9 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
         shutil.rmtree(out)
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
-    watcher = None
-    if config.view and trainer.world.writer:  # rank 0 of a torchrun group shows it
-        from nerfpipe.viewer.training import watch
+    from nerfpipe.viewer.training import train_watched
 
-        watcher = watch(trainer, port=config.view_port)
-    try:
-        metrics = trainer.train()
-    finally:
-        if watcher is not None:
-            watcher.viewer.stop()  # the page closes with the training
+    metrics = train_watched(trainer, config.view, config.view_port)
     return {"model": trainer.model.eval(), "metrics": metrics}
 
 

@@ -105,4 +105,15 @@ def watch(trainer, host: str = "127.0.0.1", port: int = 7007, share: float = 0.0
     return TrainingView(trainer, viewer, share)
 
 
-__all__ = ["TrainingView", "watch"]
+def train_watched(trainer, view: bool, port: int = 7007) -> "dict | None":
+    """``trainer.train()``, shown in a viewer while it runs when ``view`` (on rank 0 of a torchrun group
+    only); the page closes with the training."""
+    watcher = watch(trainer, port=port) if view and trainer.world.writer else None
+    try:
+        return trainer.train()
+    finally:
+        if watcher is not None:
+            watcher.viewer.stop()
+
+
+__all__ = ["TrainingView", "train_watched", "watch"]
