@@ -68,6 +68,13 @@ def _dispatch(argv: "list[str]"):
 
 
 def main(argv: "list[str] | None" = None) -> int:
+    code = _main(argv)
+    if "nerfpipe.distributed" in sys.modules:  # only it joins a torchrun group; importing it here would load torch
+        sys.modules["nerfpipe.distributed"].end_process(code)  # a rank of a group ends here (nerfpipe.distributed.leave)
+    return code
+
+
+def _main(argv: "list[str] | None") -> int:
     from nerfpipe import runtime
 
     runtime.apply()  # before torch loads OpenMP (the command's choice; importing nerfpipe makes none)

@@ -33,6 +33,7 @@ Glossary:
 
 import datetime
 import os
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -96,6 +97,40 @@ def world(device: str = "cpu") -> World:
             torch.cuda.set_device(place.local_rank)
         dist.init_process_group("nccl" if cuda else "gloo", timeout=TIMEOUT, store=_store(place), rank=place.rank, world_size=place.size)
     return place
+
+
+def leave(clean: bool = True) -> bool:
+    """Leave the torchrun group this process joined; returns whether it had joined one.
+
+    Args:
+        clean: the command succeeded: wait for every rank first (a barrier), so no rank tears down
+            the group while another still talks to it. After an error, leave at once: the other
+            ranks may be inside a collective this rank will never join.
+
+    The process that owns the group (the CLI) ends at once after this, without the interpreter's
+    finalisation (:func:`os._exit`): gloo's worker threads outlive ``destroy_process_group`` (torch
+    keeps references to the group, e.g. from the fused Adam's import), and one of them freeing a
+    finished collective's tensors during finalisation aborts the rank ("terminate called without an
+    active exception", seen on a loaded 2-core machine with torch 2.13) after all its work succeeded.
+    """
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        return False
+    if clean:
+        dist.barrier()
+    dist.destroy_process_group()
+    return True
+
+
+def end_process(code: int = 0) -> None:
+    """In a torchrun group: leave it (a barrier first when ``code`` is 0) and end the process with
+    ``code`` at once (see :func:`leave`); outside one, return. The last call of a script that trains
+    under torchrun (the CLI makes it)."""
+    if leave(clean=code == 0):
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        os._exit(code)
 
 
 def _store(place: World):

@@ -60,6 +60,8 @@ def train_step():
 t.train_step = train_step
 t.train()
 save(f"rank{rank}-{attempt}.safetensors")
+from nerfpipe import distributed
+distributed.end_process(0)
 """
 
 
