@@ -59,8 +59,10 @@ MARKER_DIR = "stages"
 RUN_RECORD = "run.json"
 NOT_NEEDED = "not needed"
 SKIPPED = "skipped"
-DEFAULT_CHAIN = ("sfm", "load", "check", "train", "render", "mesh", "export", "report")
-"""The chain of ``nerfpipe run`` without ``--stages`` or ``--pipeline``."""
+DEFAULT_CHAIN = ("sfm", "load", "check", "train", "mesh", "render", "export", "report")
+"""The chain of ``nerfpipe run`` without ``--stages`` or ``--pipeline``. The mesh comes before the orbit
+render: under a time budget each takes a share of what is left, and the mesh's completeness depends on
+the resolution of its TSDF views while the orbit only gets fewer or smaller frames."""
 
 log = logging.getLogger("nerfpipe.stages")
 

@@ -1,4 +1,4 @@
-"""The default chain end to end (sfm, load, check, train, render, mesh, export, report) on a tiny
+"""The default chain end to end (sfm, load, check, train, mesh, render, export, report) on a tiny
 synthetic scene with the demo's options, shrunk: every artifact exists and the mesh is compared
 with the scene's ground-truth mesh and sparse points."""
 
@@ -32,7 +32,7 @@ def tiny_run(tmp_path_factory):
 
 
 def test_default_chain_is_the_whole_pipeline():
-    assert DEFAULT_CHAIN == ("sfm", "load", "check", "train", "render", "mesh", "export", "report")
+    assert DEFAULT_CHAIN == ("sfm", "load", "check", "train", "mesh", "render", "export", "report")
     assert set(DEFAULT_CHAIN) <= set(stages())
     assert stages()["train"].config().model == "fast"
 
