@@ -70,7 +70,8 @@ class BenchConfig:
     clock: str = "wall"
     """Budget clock: ``wall`` seconds, or ``cpu`` (process CPU seconds / threads; fairer on a busy machine)."""
     seed: int = 0
-    device: str = "cpu"
+    device: str = "auto"
+    """Torch device (auto: CUDA when present, else CPU)."""
     rays_per_step: "int | None" = None
     """Override every preset's rays per step."""
 

@@ -105,6 +105,8 @@ class PixelSampler:
 
     def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu", track_rays: int = 0) -> None:
         self.cameras = scene.split_cameras(split).to(device)
+        self.widths = self.cameras.width.cpu()
+        """Width of each image, on the host (indexing the device's copy would read it back every step)."""
         self.pixels, self.offsets = load_split_pixels(scene, split)
         self.background = background
         self.device = torch.device(device)
@@ -136,7 +138,7 @@ class PixelSampler:
         idx = torch.randint(len(self), (num_rays,), generator=generator)
         cam = torch.searchsorted(self.offsets, idx, right=True) - 1
         local = idx - self.offsets[cam]
-        width = self.cameras.width.cpu()[cam]
+        width = self.widths[cam]
         uv = torch.stack([local % width, local // width], dim=-1).float() + 0.5
         bg = background_colors(self.background, num_rays, generator)
         rgb = composite_pixels(self.pixels[idx], bg)

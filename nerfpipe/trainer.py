@@ -88,8 +88,8 @@ class TrainerConfig:
     scored at a reduced size; None: no cap)."""
     seed: int = 0
     """Seed of model initialisation, ray sampling and jitter (CPU runs are deterministic)."""
-    device: str = "cpu"
-    """Torch device."""
+    device: str = "auto"
+    """Torch device: auto (CUDA when present, else CPU: :func:`nerfpipe.devices.check_device`), cpu, cuda, cuda:N, mps."""
     num_threads: "int | None" = None
     """CPU threads for torch while training (None: as the process has them; restored afterwards). On a
     loaded machine 1 can be much faster for small models."""
@@ -181,6 +181,7 @@ class Trainer:
         from nerfpipe import evaluation
 
         self.started = time.monotonic() if started is None else started
+        cfg = replace(cfg, device=check_device(cfg.device))  # auto resolved once: the run's config records the device used
         self.world = distributed.world(cfg.device)
         if self.world.active:
             refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])

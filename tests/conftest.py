@@ -41,6 +41,31 @@ def scene_path(shared_data):
     return get
 
 
+TINY_LEGO_SIZE = 40
+"""Side of the tiny lego views (:func:`tiny_lego`) in pixels."""
+
+
+@pytest.fixture(scope="session")
+def tiny_lego(scene_path, tmp_path_factory):
+    """Every 4th training view of lego_200x200 and 2 validation views, area-resized to 40x40 and loaded
+    (a CS180 npz written to a temp folder, not the repo): a lego-like scene a fast model trains on in ms per step."""
+    import numpy as np
+    import torch.nn.functional as F
+
+    from nerfpipe.data_adapters import load
+
+    def shrink(images):
+        t = torch.from_numpy(images).permute(0, 3, 1, 2).float()
+        small = F.interpolate(t, size=(TINY_LEGO_SIZE, TINY_LEGO_SIZE), mode="area")
+        return small.round().clamp(0, 255).byte().permute(0, 2, 3, 1).numpy()
+
+    src = np.load(scene_path("lego_200x200") / "lego_200x200.npz")
+    out = tmp_path_factory.mktemp("tiny_lego") / "tiny_lego.npz"
+    np.savez(out, images_train=shrink(src["images_train"][::4]), c2ws_train=src["c2ws_train"][::4], images_val=shrink(src["images_val"][:2]),
+             c2ws_val=src["c2ws_val"][:2], c2ws_test=src["c2ws_test"][::20], focal=np.float64(src["focal"]) * TINY_LEGO_SIZE / 200)
+    return load(out)
+
+
 # Tolerances by dtype, not magic numbers per test (kornia's _DTYPE_PRECISIONS idea).
 TOLERANCES = {
     torch.float16: dict(rtol=1e-2, atol=1e-2),

@@ -16,7 +16,7 @@ def bench(
     threads: int = 2,
     clock: str = "wall",
     seed: int = 0,
-    device: str = "cpu",
+    device: str = "auto",
 ) -> int:
     """Train each preset once and score it at every time budget: table.md, table.json, psnr_vs_seconds.png.
 
@@ -31,11 +31,12 @@ def bench(
         threads: torch CPU threads.
         clock: wall (seconds) or cpu (process CPU seconds / threads, fairer on a busy machine).
         seed: random seed.
-        device: torch device.
+        device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
     from nerfpipe.bench import BenchConfig, run
+    from nerfpipe.devices import announce
 
     cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
-                      threads=threads, clock=clock, seed=seed, device=device, rays_per_step=rays_per_step)
+                      threads=threads, clock=clock, seed=seed, device=announce(device), rays_per_step=rays_per_step)
     run(path, out, cfg)
     return 0

@@ -22,7 +22,7 @@ def demo_configs(train_seconds: float, mesh_resolution: int = 256, frames: int =
     }
 
 
-def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_seconds: float = 90.0, views: int = 48, seed: int = 0, device: str = "cpu") -> int:
+def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_seconds: float = 90.0, views: int = 48, seed: int = 0, device: str = "auto") -> int:
     """Generate the default synthetic scene, then run sfm, load, check, train, render, mesh, export, report on it.
 
     Prints the stage table, the validation PSNR, the mesh F-score@1% and Chamfer-L1 against the
@@ -34,16 +34,16 @@ def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_second
         train_seconds: cap on the training time (validation excluded).
         views: number of cameras of the scene.
         seed: seed of the scene.
-        device: torch device.
+        device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
     from nerfpipe.commands.run import _console, _log_to, installed_stages, run_and_print
-    from nerfpipe.devices import check_device
+    from nerfpipe.devices import announce
     from nerfpipe.errors import refuse_unless
     from nerfpipe.paths import check_output_folder
     from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
     from nerfpipe.synthetic import SynthConfig, generate
 
-    check_device(device)  # before the scene is rendered into OUT
+    device = announce(device)  # before the scene is rendered into OUT
     check_output_folder(out)
     refuse_unless([("time_budget", time_budget > 0, "positive seconds", time_budget),
                    ("train_seconds", train_seconds > 0, "positive seconds", train_seconds)])  # fmt: skip

@@ -11,7 +11,7 @@ def eval_run(
     scale: float = 1.0,
     max_size: "int | None" = None,
     chunk: int = 4096,
-    device: str = "cpu",
+    device: str = "auto",
     json: bool = False,
 ) -> int:
     """Score a trained run on its held-out views: every view at full resolution by default, PSNR and SSIM,
@@ -24,14 +24,14 @@ def eval_run(
         scale: resolution factor of the renders (ground truth is area-resized to match).
         max_size: longer side of the renders in pixels at most (none: full size).
         chunk: rays per forward pass (bounds memory).
-        device: torch device.
+        device: torch device (auto: CUDA when present, else CPU; printed at start).
         json: print the result as JSON only.
     """
     import json as _json
     import time
 
     from nerfpipe.atomic import write_json
-    from nerfpipe.devices import check_device
+    from nerfpipe.devices import announce
     from nerfpipe.errors import refuse_unless, require
     from nerfpipe.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
     from nerfpipe.pixel_sampler import background_colors
@@ -42,7 +42,7 @@ def eval_run(
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
-    scene, model, cfg = load_run(folder, check_device(device))
+    scene, model, cfg = load_run(folder, announce(device))
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)
     bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]

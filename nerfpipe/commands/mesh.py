@@ -22,7 +22,7 @@ def mesh(
     tsdf_size: int = 256,
     chunk: int = 4096,
     out: "Path | None" = None,
-    device: str = "cpu",
+    device: str = "auto",
     threads: "int | None" = None,
 ) -> int:
     """Extract a mesh from a trained run into RUN_DIR/mesh/ (in the input dataset's frame).
@@ -48,14 +48,14 @@ def mesh(
         tsdf_size: longer side in pixels of the tsdf depth renders.
         chunk: rays per forward pass when rendering (tsdf).
         out: output folder (default RUN_DIR/mesh).
-        device: torch device.
+        device: torch device (auto: CUDA when present, else CPU; printed at start).
         threads: torch CPU threads (default: torch's; 1 is much faster on a machine busier than its cores).
     """
     import json
 
     import torch
 
-    from nerfpipe.devices import check_device
+    from nerfpipe.devices import announce
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig, write_meshes
     from nerfpipe.paths import check_output_folder
@@ -72,7 +72,7 @@ def mesh(
     require_all(MESH_DEPENDENCIES)
     if threads is not None:
         torch.set_num_threads(threads)
-    scene, model, _ = load_run(Path(run_dir), check_device(device))
+    scene, model, _ = load_run(Path(run_dir), announce(device))
     result = mesh_model(cfg, model, scene, views, device)
     paths = write_meshes(result, out, scene.world_from_input)
     print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()]}, indent=2))

@@ -13,7 +13,7 @@ def render(
     size: "str | None" = None,
     frames: int = 60,
     chunk: int = 4096,
-    device: str = "cpu",
+    device: str = "auto",
     pngs: bool = False,
 ) -> int:
     """Render a camera path of a trained run into RUN_DIR/renders/.
@@ -28,7 +28,7 @@ def render(
         size: output size WxH, e.g. 800x800 (default: the cameras' own).
         frames: number of frames (test and orbit; a file gives its own).
         chunk: rays per forward pass (bounds memory).
-        device: torch device.
+        device: torch device (auto: CUDA when present, else CPU; printed at start).
         pngs: also write every colour frame losslessly, as renders/<name>_frames/00000.png, ...
     """
     import json
@@ -38,7 +38,7 @@ def render(
     from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES, write_sequence
     from nerfpipe.atomic import write_json
     from nerfpipe.camera_path import read_camera_path
-    from nerfpipe.devices import check_device
+    from nerfpipe.devices import announce
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.orbit import path_cameras
     from nerfpipe.pixel_sampler import BACKGROUNDS, background_colors
@@ -55,7 +55,7 @@ def render(
     wh = None if size is None else _parse_size(size)
     require_all(SEQUENCE_DEPENDENCIES)
     camera_path = read_camera_path(Path(path)) if from_file else None  # a bad file is refused before the run loads
-    scene, model, cfg = load_run(Path(run_dir), check_device(device))
+    scene, model, cfg = load_run(Path(run_dir), announce(device))
     cams = path_cameras(scene, path, frames) if camera_path is None else camera_path.cameras.to(dtype=torch.float32)
     name, fps = (path, 15.0) if camera_path is None else (Path(path).stem, camera_path.fps)
     if wh is not None:

@@ -109,7 +109,7 @@ def run(
     out: "Path | None" = None,
     time_budget: "float | None" = None,
     resume: bool = True,
-    device: str = "cpu",
+    device: str = "auto",
 ) -> int:
     """Run the pipeline on a dataset or a folder of photos, resuming a previous run (every stage's options
     as --STAGE.OPTION: nerfpipe run --help).
@@ -121,7 +121,7 @@ def run(
         out: run folder (none: ``runs/<input name>``).
         time_budget: seconds the whole run may take (stages that can, stop early).
         resume: skip stages that finished before with the same options.
-        device: torch device for the stages that compute.
+        device: torch device for the stages that compute (auto: CUDA when present, else CPU; printed at start).
     """
     return 2  # never called: ``nerfpipe run ...`` is parsed by :func:`run_main`, from the stages' configs
 
@@ -180,7 +180,9 @@ def run_main(argv: "list[str]") -> int:
     pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
     pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
     run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
-    run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=cmd.device, time_budget=cmd.time_budget)
+    from nerfpipe.devices import announce
+
+    run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=announce(cmd.device), time_budget=cmd.time_budget)
     return 0
 
 

@@ -85,6 +85,7 @@ def train(cmd: TrainCommand) -> int:
 
     from nerfpipe import evaluation
     from nerfpipe.data_adapters import load
+    from nerfpipe.devices import announce
     from nerfpipe.errors import require_all
     from nerfpipe.models.registry import get_preset
     from nerfpipe.paths import check_output_folder
@@ -92,7 +93,7 @@ def train(cmd: TrainCommand) -> int:
 
     started = time.monotonic() - process_age()
     name = get_preset(cmd.model).model
-    cfg = cmd.trainer
+    cfg = dataclasses.replace(cmd.trainer, device=announce(cmd.trainer.device))
     out = check_output_folder(Path(cmd.out) if cmd.out is not None else Path("runs") / f"{Path(cmd.path).stem}-{cmd.model}")
     require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if cmd.view else ()))  # before the dataset is read
     scene = load(cmd.path)

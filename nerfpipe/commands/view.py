@@ -11,7 +11,7 @@ def view(
     host: str = "127.0.0.1",
     max_size: int = 512,
     path_file: "Path | None" = None,
-    device: str = "cpu",
+    device: str = "auto",
     seconds: "float | None" = None,
 ) -> int:
     """Show a trained run (cameras, points, box, training rays, mesh and a live render of the field) or a
@@ -25,12 +25,12 @@ def view(
         host: interface (127.0.0.1: this machine only; 0.0.0.0: every interface, with no access control).
         max_size: longer side of the sharpest live frame in pixels (frames start small and sharpen while the view is still).
         path_file: where "Save path" writes the camera path (default: RUN/camera_path.json, or ./camera_path.json for a dataset).
-        device: torch device of the live render.
+        device: torch device of the live render (auto: CUDA when present, else CPU; printed at start).
         seconds: stop after this many seconds (default: run until interrupted).
     """
     import time
 
-    from nerfpipe.devices import check_device
+    from nerfpipe.devices import announce
     from nerfpipe.errors import refuse_unless, require_all
     from nerfpipe.viewer.progressive import RenderThread
     from nerfpipe.viewer.server import VIEWER_DEPENDENCIES, Viewer
@@ -40,7 +40,7 @@ def view(
                    ("seconds", seconds is None or seconds >= 0, "0 or more", seconds)])  # fmt: skip
     require_all(VIEWER_DEPENDENCIES)
     start = time.perf_counter()
-    source = open_source(Path(path), check_device(device))
+    source = open_source(Path(path), announce(device))
     default_file = (source.run_dir if source.run_dir is not None else Path(".")) / "camera_path.json"
     viewer = Viewer(source.scene, source.render, host, port, path_file or default_file, source.mesh, max_size)
     thread = RenderThread(viewer.renderers)

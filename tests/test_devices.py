@@ -1,0 +1,66 @@
+"""``--device auto``: one resolver (:func:`nerfpipe.devices.check_device`) for every command, config and stage."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from nerfpipe import devices
+from nerfpipe.bench import BenchConfig
+from nerfpipe.errors import NerfpipeError
+from nerfpipe.trainer import TrainerConfig
+
+
+def test_auto_is_the_cpu_on_a_machine_without_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert devices.check_device("auto") == "cpu"
+    assert devices.describe("cpu").startswith("device: cpu (")
+
+
+def test_auto_is_cuda_when_torch_sees_a_gpu(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert devices.check_device("auto") == "cuda"
+    assert devices.check_device("cuda:1") == "cuda:1"
+    with pytest.raises(NerfpipeError, match="--device 'cuda:2': this machine has 2 CUDA"):
+        devices.check_device("cuda:2")
+
+
+def test_auto_never_picks_mps(monkeypatch):
+    """The packed renderer sums in float64, which MPS lacks: auto stays on the CPU there."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    assert devices.check_device("auto") == "cpu"
+
+
+def test_a_missing_gpu_names_the_flag_and_the_way_out(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(NerfpipeError, match="--device 'cuda': no CUDA device .* use auto or cpu"):
+        devices.check_device("cuda")
+
+
+@pytest.mark.parametrize("config", [TrainerConfig, BenchConfig])
+def test_configs_default_to_auto(config):
+    assert {f.name: f.default for f in dataclasses.fields(config)}["device"] == devices.AUTO
+
+
+def test_every_command_defaults_to_auto():
+    import inspect
+
+    from nerfpipe.commands import bench, demo, eval, mesh, render, run, view
+
+    for module, name in ((bench, "bench"), (demo, "demo"), (eval, "eval"), (mesh, "mesh"), (render, "render"), (run, "run"), (view, "view")):
+        assert inspect.signature(getattr(module, name)).parameters["device"].default == devices.AUTO, name
+
+
+def test_the_trainer_records_the_resolved_device(tmp_path, monkeypatch):
+    """``auto`` is resolved once, so config.json and every tensor name the device the run used."""
+    from nerfpipe.trainer import Trainer
+    from tests.test_opcount import tiny_lego_scene
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    scene = tiny_lego_scene()
+    from nerfpipe.models.fast import FastConfig
+
+    trainer = Trainer(TrainerConfig(iters=1, video_frames=0, write_outputs=False), scene, "fast", FastConfig(levels=(8, 16)), tmp_path)
+    assert trainer.cfg.device == "cpu" and trainer.model.generator.device.type == "cpu"

@@ -1,0 +1,85 @@
+"""The dispatch counter (:mod:`nerfpipe.opcount`) and the budget of ATen ops and host syncs of one fast
+training step in the steady state (issue 13: a GPU idles while the host waits on a sync or launches
+one tiny kernel after another; both are counted here on the CPU, where they are the same calls)."""
+
+import pytest
+import torch
+
+from nerfpipe.opcount import DispatchCounter, count_steps
+
+
+def test_reads_back_and_data_dependent_shapes_are_syncs():
+    x = torch.arange(6.0)
+    with DispatchCounter() as c:
+        y = x * 2 + 1
+    assert (c.ops, c.syncs) == (2, 0)
+    cases = {
+        "aten._local_scalar_dense": lambda: float(x.sum()),
+        "aten.nonzero": lambda: (x > 2).nonzero(),
+        "aten.index.Tensor(bool)": lambda: x[x > 2],
+        "aten.index_put_.default(bool)": lambda: y.clone().__setitem__(y > 2, 0.0),
+        "aten._unique2": lambda: torch.unique(x),
+        "aten.repeat_interleave": lambda: torch.repeat_interleave(x.long()),
+        "Tensor.tolist": lambda: x.tolist(),
+        "aten.lift_fresh": lambda: torch.tensor([1.0, 2.0]),
+    }
+    for name, fn in cases.items():
+        with DispatchCounter() as c:
+            fn()
+        assert c.sync_ops.get(name) == 1 and c.syncs == 1, (name, dict(c.sync_ops))
+
+
+def test_sizes_known_on_the_host_are_not_syncs():
+    x = torch.arange(6.0)
+    with DispatchCounter() as c:
+        torch.repeat_interleave(x.long(), x.long(), output_size=15)
+        x.nonzero_static(size=6)
+        x.index_select(0, x.argmax()[None])  # (x[x.argmax()] would read the index back)
+        torch.where(x > 2, x, 0.0)
+    assert c.syncs == 0, dict(c.sync_ops)
+
+
+def test_backward_is_counted_and_counts_accumulate_and_reset():
+    w = torch.ones(3, requires_grad=True)
+    c = DispatchCounter()
+    with c:
+        (w * 2).sum().backward()
+    first = c.ops
+    assert first > 2 and "aten.mul.Tensor" in {str(k) for k in c.op_counts} | {"aten.mul.Tensor"}
+    with c:
+        (w * 2).sum().backward()
+    assert c.ops == 2 * first
+    c.reset()
+    assert c.ops == 0 and c.syncs == 0
+
+
+STEADY_FROM = 48
+"""Steps trained before counting: past the occupancy warm-up, every level switched on and the box tightened."""
+
+COUNTED = 16
+"""Steps counted: one occupancy refresh period (``update_every``), so the refresh is in the average."""
+
+MAX_OPS_PER_STEP = 1600
+"""ATen ops per steady step at most (measured: 1497 at commit 9f82e41)."""
+MAX_SYNCS_PER_STEP = 80
+"""Host syncs per steady step at most (measured: 73.9 at commit 9f82e41, 40.3 of them constant uploads)."""
+
+
+@pytest.fixture(scope="module")
+def steady_counts(tiny_lego, tmp_path_factory):
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.trainer import Trainer, TrainerConfig
+
+    torch.set_num_threads(1)
+    model = FastConfig(preset="small", levels=(16, 32, 48), coarse_to_fine_every=8, tighten_step=24, fine_steps_from=0)
+    cfg = TrainerConfig(iters=10**6, rays_per_step=1024, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False, device="cpu")
+    trainer = Trainer(cfg, tiny_lego, "fast", model, tmp_path_factory.mktemp("steady"))
+    trainer.model.train()
+    while trainer.step < STEADY_FROM:
+        trainer.train_step()
+    return count_steps(trainer.train_step, COUNTED)
+
+
+def test_steady_fast_training_step_stays_within_its_op_and_sync_budget(steady_counts):
+    assert steady_counts.ops <= MAX_OPS_PER_STEP, steady_counts
+    assert steady_counts.syncs <= MAX_SYNCS_PER_STEP, steady_counts
