@@ -35,7 +35,7 @@ def test_auto_never_picks_mps(monkeypatch):
 
 def test_a_missing_gpu_names_the_flag_and_the_way_out(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(NerfpipeError, match="--device 'cuda': no CUDA device .* use auto or cpu"):
+    with pytest.raises(NerfpipeError, match=r"--device 'cuda': no CUDA device .*\(use auto or cpu\)"):
         devices.check_device("cuda")
 
 
@@ -49,18 +49,17 @@ def test_every_command_defaults_to_auto():
 
     from nerfpipe.commands import bench, demo, eval, mesh, render, run, view
 
-    for module, name in ((bench, "bench"), (demo, "demo"), (eval, "eval"), (mesh, "mesh"), (render, "render"), (run, "run"), (view, "view")):
+    for module, name in ((bench, "bench"), (demo, "demo"), (eval, "eval_run"), (mesh, "mesh"), (render, "render"), (run, "run"), (view, "view")):
         assert inspect.signature(getattr(module, name)).parameters["device"].default == devices.AUTO, name
 
 
-def test_the_trainer_records_the_resolved_device(tmp_path, monkeypatch):
-    """``auto`` is resolved once, so config.json and every tensor name the device the run used."""
+def test_the_trainer_records_the_resolved_device(tiny_lego, tmp_path, monkeypatch):
+    """``auto`` is resolved once, so config.json and the run's generators name the device the run used."""
+    from nerfpipe.models.fast import FastConfig
     from nerfpipe.trainer import Trainer
-    from tests.test_opcount import tiny_lego_scene
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    scene = tiny_lego_scene()
-    from nerfpipe.models.fast import FastConfig
-
-    trainer = Trainer(TrainerConfig(iters=1, video_frames=0, write_outputs=False), scene, "fast", FastConfig(levels=(8, 16)), tmp_path)
+    trainer = Trainer(TrainerConfig(iters=1, video_frames=0, write_outputs=False), tiny_lego, "fast", FastConfig(levels=(8, 16)), tmp_path)
     assert trainer.cfg.device == "cpu" and trainer.model.generator.device.type == "cpu"
+    trainer.write_config()
+    assert '"device": "cpu"' in (tmp_path / "config.json").read_text()
