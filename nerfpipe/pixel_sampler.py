@@ -22,6 +22,9 @@ def background_colors(mode: str, n: int, generator: "torch.Generator | None" = N
     """``n`` background colours: a named constant (``black``/``white``) or ``random`` per ray."""
     if mode == "random":
         return torch.rand((n, 3), generator=generator).to(device)
+    r, g, b = BACKGROUNDS[mode]
+    if r == g == b:  # grey: no tensor built from a list (a blocking upload on CUDA)
+        return torch.full((1, 3), r, device=device).expand(n, 3)
     return torch.tensor(BACKGROUNDS[mode], device=device).expand(n, 3)
 
 
@@ -108,6 +111,7 @@ class PixelSampler:
         self.widths = self.cameras.width.cpu()
         """Width of each image, on the host (indexing the device's copy would read it back every step)."""
         self.pixels, self.offsets = load_split_pixels(scene, split)
+        self.num_pixels = int(self.offsets[-1])
         self.background = background
         self.device = torch.device(device)
         has_tracks = scene.points is not None and scene.points.has_tracks
@@ -116,7 +120,7 @@ class PixelSampler:
         """Rays per batch through sparse points (the rest are uniform pixels)."""
 
     def __len__(self) -> int:
-        return int(self.offsets[-1])
+        return self.num_pixels
 
     def sample(self, num_rays: int, generator: "torch.Generator | None" = None) -> PixelBatch:
         """``num_rays`` rays: uniform pixels, and ``track_rays`` of them through sparse points."""

@@ -21,6 +21,7 @@ Glossary:
     optical depth  sum of ``sigma * delta`` in front of a sample; transmittance is ``exp(-depth)``
 """
 
+import math
 from dataclasses import dataclass
 from collections.abc import Callable
 
@@ -71,7 +72,12 @@ class PackedSamples:
         return self.ray_indices.shape[0]
 
     def select(self, keep: Bool[Tensor, "num_samples"]) -> "PackedSamples":
-        return PackedSamples(self.ray_indices[keep], self.t_starts[keep], self.t_ends[keep], self.num_rays)
+        return self.take(keep.nonzero()[:, 0])
+
+    def take(self, idx: Int[Tensor, "num_kept"]) -> "PackedSamples":
+        """The samples at positions ``idx`` (one mask turned into positions once: a mask indexing each tensor
+        would be one host sync per tensor on CUDA)."""
+        return PackedSamples(self.ray_indices[idx], self.t_starts[idx], self.t_ends[idx], self.num_rays)
 
     def points(self, origins: Float[Tensor, "num_rays 3"], directions: Float[Tensor, "num_rays 3"]) -> Float[Tensor, "num_samples 3"]:
         t = 0.5 * (self.t_starts + self.t_ends)
@@ -88,6 +94,8 @@ class _Limits:
     t1: Tensor
     offset: Tensor
     step_size: float
+    box: Tensor
+    """The box the rays are marched in."""
     first: Tensor
     """Per ray, the first interval number that can be occupied (0 without skipping)."""
     last: Tensor
@@ -121,6 +129,7 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("density", torch.zeros(r**3))
         self.register_buffer("binary", torch.ones(r**3, dtype=torch.bool))
         self._coarse_cache: "tuple | None" = None
+        self._span_cache: "dict[tuple, tuple[float, int]]" = {}
 
     @property
     def occupied_fraction(self) -> float:
@@ -205,7 +214,7 @@ class OccupancyGrid(nn.Module):
         t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
         n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
         offset = torch.rand(t0.shape, dtype=t0.dtype, device=t0.device, generator=generator) if jitter else torch.zeros_like(t0)
-        lim = _Limits(origins, directions, t0, t1, offset, step_size, torch.zeros_like(n_steps), n_steps)
+        lim = _Limits(origins, directions, t0, t1, offset, step_size, box, torch.zeros_like(n_steps), n_steps)
         if self.cfg.skip_factor > 1 and n_steps.numel():
             lim.first, lim.last = self._occupied_span(lim)
         return lim
@@ -221,6 +230,19 @@ class OccupancyGrid(nn.Module):
             self._coarse_cache = (key, coarse.reshape(-1) > 0, coarse.shape[-1])
         return self._coarse_cache[1], self._coarse_cache[2]
 
+    def _coarse_steps(self, box: Float[Tensor, "2 3"]) -> "tuple[float, int]":
+        """The coarse step ``h`` and the most coarse samples a unit ray can take through ``box`` (its diagonal
+        over ``h``, with a margin for rounding); read from the device once per box (it changes at refreshes)."""
+        key = (self.aabb.data_ptr(), self.aabb._version, box.data_ptr(), box._version)
+        if key not in self._span_cache:
+            if len(self._span_cache) > 8:
+                self._span_cache.clear()
+            grid, marched = self.aabb.detach().cpu(), box.detach().cpu()
+            h = float(((grid[1] - grid[0]) / self.cfg.resolution).min()) * self.cfg.skip_factor
+            diagonal = float((marched[1] - marched[0]).norm())
+            self._span_cache[key] = h, max(int(math.ceil(diagonal / h * 1.001)) + 2, 1)
+        return self._span_cache[key]
+
     def _occupied_span(self, lim: "_Limits", chunk: int = 1 << 21) -> "tuple[Tensor, Tensor]":
         """First and last interval of each ray that can meet an occupied cell.
 
@@ -229,12 +251,13 @@ class OccupancyGrid(nn.Module):
         along each axis: a point in an occupied cell puts a sample in the dilated coarse occupancy.
         No occupied point therefore lies before ``t0 + j_first h`` or after ``t0 + (j_last + 1) h``,
         and the intervals wholly outside that span (one more on each side for rounding) are skipped.
+        The number of coarse samples is bounded by the diagonal of the marched box (unit directions), not
+        read from the rays: no data-dependent shape reaches the host.
         """
         coarse, rc = self._coarse()
-        r, f = self.cfg.resolution, self.cfg.skip_factor
-        h = float(((self.aabb[1] - self.aabb[0]) / r).min()) * f
-        n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0).long()
-        n_max = max(int(n.max()), 1)
+        f = self.cfg.skip_factor
+        h, n_max = self._coarse_steps(lim.box)
+        n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0, max=n_max).long()
         j = torch.arange(n_max, device=n.device)
         j_first, j_last, hit_any = [], [], []
         for s in range(0, len(n), max(1, chunk // n_max)):
@@ -343,7 +366,7 @@ class OccupancyGrid(nn.Module):
             rows = max(1, rounds.chunk_samples // s)
             parts = [self._round(lim, state.slice(i, i + rows), sigma_fn, k, s, min_transmittance, min_alpha)
                      for i in range(0, len(state.rays), rows)]
-            kept += [p[0] for p in parts]
+            kept += [p[0] for p in parts]  # (samples, densities, which to keep) of each chunk
             state = _RayState.cat([p[1] for p in parts])
             n += 1
         return _sorted_by_ray(kept, origins)
@@ -366,7 +389,7 @@ class OccupancyGrid(nn.Module):
         state = _RayState(state.rays, state.next_step + advance, optical_depth)
         alive = torch.exp(-optical_depth.to(trans.dtype)) > min_transmittance
         alive &= (state.next_step <= lim.last[state.rays]) & (lim.t_start(state.rays, state.next_step) < lim.t1[state.rays])
-        return (samples.select(keep), sigma[keep]), state.select(alive)
+        return (samples, sigma, keep), state.select(alive)
 
 
 @dataclass
@@ -410,7 +433,8 @@ class _RayState:
         return _RayState(self.rays[start:stop], self.next_step[start:stop], self.optical_depth[start:stop])
 
     def select(self, keep: Tensor) -> "_RayState":
-        return _RayState(self.rays[keep], self.next_step[keep], self.optical_depth[keep])
+        idx = keep.nonzero()[:, 0]  # once for the three tensors (a mask per tensor: three host syncs on CUDA)
+        return _RayState(self.rays[idx], self.next_step[idx], self.optical_depth[idx])
 
 
 def _transmittance(sigma, samples: PackedSamples, row, col, optical_depth, shape):
@@ -429,11 +453,13 @@ def _transmittance(sigma, samples: PackedSamples, row, col, optical_depth, shape
 
 
 def _sorted_by_ray(kept: list, origins: Tensor) -> "tuple[PackedSamples, Tensor]":
-    """Concatenate the rounds' samples and order them by ray (stable: each ray's rounds are in order)."""
+    """Concatenate the rounds' evaluated samples, keep those their masks keep and order them by ray (stable:
+    each ray's rounds are in order). The masks are applied here, once for all rounds and tensors."""
     num_rays = origins.shape[0]
     if not kept:
         return PackedSamples(torch.zeros(0, dtype=torch.long, device=origins.device), origins.new_zeros(0), origins.new_zeros(0), num_rays), origins.new_zeros(0)
-    rays = torch.cat([p.ray_indices for p, _ in kept])
-    order = torch.sort(rays, stable=True).indices
-    samples = PackedSamples(rays[order], torch.cat([p.t_starts for p, _ in kept])[order], torch.cat([p.t_ends for p, _ in kept])[order], num_rays)
-    return samples, torch.cat([s for _, s in kept])[order]
+    idx = torch.cat([keep for _, _, keep in kept]).nonzero()[:, 0]
+    rays = torch.cat([p.ray_indices for p, _, _ in kept])
+    order = idx[torch.sort(rays[idx], stable=True).indices]
+    samples = PackedSamples(rays[order], *(torch.cat(t)[order] for t in zip(*((p.t_starts, p.t_ends) for p, _, _ in kept))), num_rays)
+    return samples, torch.cat([s for _, s, _ in kept])[order]

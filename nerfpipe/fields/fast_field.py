@@ -76,6 +76,7 @@ class FastField(nn.Module):
         self.feature_grid = DenseGridEncoding(resolutions, feature_channels, max_rows=max_rows)
         self.shift = math.log(math.expm1(init_density))
         self.active_levels = len(resolutions)
+        self._voxel_sizes: "dict[tuple, float]" = {}
         """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
         self.mlp = nn.Sequential(
             nn.Linear(self.feature_grid.out_dim + 16, hidden),
@@ -104,10 +105,15 @@ class FastField(nn.Module):
         return out
 
     def voxel_size(self, level: int) -> float:
-        """Smallest vertex spacing of a level, in scene units."""
+        """Smallest vertex spacing of a level, in scene units (read from the box once per box: it is asked
+        for on every training step, and each read is a host sync on CUDA)."""
         box = self.lattice if self.hashed(level) else self.aabb
-        res = torch.tensor(self.density_grid.resolutions[level], dtype=box.dtype, device=box.device)
-        return float(((box[1] - box[0]) / (res - 1)).min())
+        res = self.density_grid.resolutions[level]
+        key = (level, res, box.data_ptr(), box._version)
+        if key not in self._voxel_sizes:  # a new box: tightened or loaded (a few times per run)
+            host = box.detach().cpu()
+            self._voxel_sizes[key] = float(((host[1] - host[0]) / (torch.tensor(res, dtype=host.dtype) - 1)).min())
+        return self._voxel_sizes[key]
 
     def density_from_corners(self, corners: list) -> Float[Tensor, "num_points"]:
         raw = None

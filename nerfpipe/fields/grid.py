@@ -19,6 +19,8 @@ Glossary:
     w       ``[N, 8]`` trilinear weights of those corners (sum to 1)
 """
 
+import functools
+
 import torch
 from torch import nn
 
@@ -33,6 +35,19 @@ _CORNERS = ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1), (1, 0, 0), (1, 0, 1), (1
 HASH_PRIMES = (2654435761, 805459861, 1)
 
 
+@functools.lru_cache(maxsize=256)
+def _level_constants(res: "tuple[int, int, int]", dtype: torch.dtype, device: torch.device) -> "tuple[Tensor, Tensor, Tensor, Tensor]":
+    """The constant tensors of a level's corner computation, built once per resolution, dtype and device
+    (built on every call, each would be a blocking host-to-device copy on CUDA): the last vertex index per
+    axis, the dense layout's row strides and corner offsets, and the hashing primes."""
+    ry, rz = res[1], res[2]
+    size = torch.tensor(res, dtype=dtype, device=device) - 1
+    strides = torch.tensor([ry * rz, rz, 1], device=device)
+    offsets = torch.tensor([(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS], device=device)
+    primes = torch.tensor(HASH_PRIMES, device=device)
+    return size, strides, offsets, primes
+
+
 def trilinear_corners(
     x01: Float[Tensor, "num_points 3"], res: "tuple[int, int, int]", rows: "int | None" = None
 ) -> "tuple[Int[Tensor, 'num_points 8'], Float[Tensor, 'num_points 8']]":
@@ -41,23 +56,23 @@ def trilinear_corners(
     Points outside the unit cube are clamped to its surface. ``rows``: the table's rows when the
     level is hashed (a power of two below the vertex count), else None.
     """
-    size = torch.tensor(res, device=x01.device, dtype=x01.dtype) - 1
+    size, strides, offsets, primes = _level_constants(tuple(res), x01.dtype, x01.device)
     pos = x01.clamp(0.0, 1.0) * size
     lo = torch.minimum(pos.floor(), (size - 1).clamp(min=0))
     frac = pos - lo
     w1 = torch.stack([1 - frac, frac], dim=-1)  # [N, 3, 2]
     w = (w1[:, 0, :, None, None] * w1[:, 1, None, :, None] * w1[:, 2, None, None, :]).reshape(-1, 8)
     if rows is not None:
-        return hashed_rows(lo.long(), rows), w
-    ry, rz = res[1], res[2]
-    base = (lo.long() * torch.tensor([ry * rz, rz, 1], device=x01.device)).sum(-1)
-    offsets = torch.tensor([(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS], device=x01.device)
+        return hashed_rows(lo.long(), rows, primes), w
+    base = (lo.long() * strides).sum(-1)
     return base[:, None] + offsets, w
 
 
-def hashed_rows(lo: Int[Tensor, "num_points 3"], rows: int) -> Int[Tensor, "num_points 8"]:
-    """Hashed table rows of the eight vertices ``lo + (di, dj, dk)`` (in the order of ``_CORNERS``)."""
-    primes = torch.tensor(HASH_PRIMES, device=lo.device)
+def hashed_rows(lo: Int[Tensor, "num_points 3"], rows: int, primes: "Int[Tensor, '3'] | None" = None) -> Int[Tensor, "num_points 8"]:
+    """Hashed table rows of the eight vertices ``lo + (di, dj, dk)`` (in the order of ``_CORNERS``);
+    ``primes``: :data:`HASH_PRIMES` as a tensor on ``lo``'s device (default: built here)."""
+    if primes is None:
+        primes = torch.tensor(HASH_PRIMES, device=lo.device)
     terms = torch.stack([lo, lo + 1], dim=-1) * primes[:, None]  # [N, 3, 2]
     h = terms[:, 0, :, None, None] ^ terms[:, 1, None, :, None] ^ terms[:, 2, None, None, :]
     return h.reshape(-1, 8) & (rows - 1)
