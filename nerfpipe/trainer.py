@@ -45,6 +45,10 @@ from nerfpipe.scoped import continued_generator, seeded_init, torch_threads
 from nerfpipe.typing import Float, Tensor
 
 
+LOG_SECONDS = 1.0
+"""The training losses are read back from the device (a host sync) and logged at most this often, and before
+every validation, checkpoint and the end."""
+
 MAX_RAYS_PER_STEP = 1 << 22
 """More rays per step than this (4 M) would not fit in memory with any model's samples: a typo, refused."""
 
@@ -210,6 +214,8 @@ class Trainer:
             check_images(scene, scene.splits[split])
         self.step, self.train_seconds = 0, 0.0
         self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
+        self._losses: "list[tuple[int, float, Tensor]]" = []  # (step, seconds, MSE on the device) not yet in history
+        self._logged_at = 0.0  # perf_counter of the latest flush_losses
         self.hooks = self.model.callbacks()
         self.seconds_per_pixel: "float | None" = None  # of the latest validation render
         self.validation_seconds = 0.0  # rendering for validations so far
@@ -276,8 +282,9 @@ class Trainer:
         for hook in self.hooks.get(place, []):
             hook(self.step)
 
-    def train_step(self) -> float:
-        """One optimiser step; returns the colour MSE of the batch."""
+    def train_step(self) -> Tensor:
+        """One optimiser step; returns the colour MSE of the batch, a 0-dim tensor on the device (reading it
+        is a host sync: the loop reads the steps' losses together when it logs them, :meth:`flush_losses`)."""
         self.fire(Callback.BEFORE_TRAIN_ITERATION)
         if self.sync is not None:
             self.sync()  # the hooks' changes (occupancy grid, box) as rank 0 made them
@@ -287,11 +294,12 @@ class Trainer:
         losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
         self.optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
-        mse = float(torch.mean((outputs.rgb.detach() - batch.rgb) ** 2))
+        mse = torch.mean((outputs.rgb.detach() - batch.rgb) ** 2)
         if self.world.active:  # the gradient (and the MSE) over the union of the ranks' rays
             weight = self.rays / self.cfg.rays_per_step
             params = [p for group in self.optimizer.param_groups for p in group["params"]]
-            (mse,) = distributed.all_reduce_gradients(params, weight, [weight * mse])
+            (total,) = distributed.all_reduce_gradients(params, weight, [weight * float(mse)])
+            mse = torch.full((), total)
         drop_stale_optimizer_state(self.optimizer)
         self.optimizer.step()
         if self.sync is not None:
@@ -370,17 +378,33 @@ class Trainer:
                 self.train_seconds += self.clock() - t0
                 if self.world.active:  # one clock for the group, so every rank stops at the same step
                     self.train_seconds = distributed.maximum(self.train_seconds)
-                self.history["train"].append([self.step, self.train_seconds, psnr_from_mse(mse)])
-                bar.update(self.step, self.train_seconds, psnr_from_mse(mse), self.wall_elapsed())
+                self._losses.append((self.step, self.train_seconds, mse))
+                if time.perf_counter() - self._logged_at >= LOG_SECONDS:
+                    self.flush_losses(bar)
                 self.periodic(evaluation, bar)
+        self.flush_losses(bar)
         self.training_stopped_at = self.wall_elapsed()
         self.fire(Callback.AFTER_TRAIN)
         self.save()
         self.final_started_at = self.wall_elapsed()
         return evaluation.finish(self) if writer else None
 
+    def flush_losses(self, bar=None) -> None:
+        """The training rows of the steps since the last flush into ``history`` (their losses read back from
+        the device together: one host sync) and the progress display updated."""
+        if not self._losses:
+            return
+        mses = torch.stack([m.detach().reshape(()).float() for _, _, m in self._losses]).tolist()
+        self.history["train"] += [[step, seconds, psnr_from_mse(m)] for (step, seconds, _), m in zip(self._losses, mses)]
+        self._losses, self._logged_at = [], time.perf_counter()
+        if bar is not None:
+            step, seconds, psnr = self.history["train"][-1]
+            bar.update(step, seconds, psnr, self.wall_elapsed())
+
     def periodic(self, evaluation, bar) -> None:
         every, ck = self.cfg.eval_every, self.cfg.checkpoint_every
+        if (every and self.step % every == 0) or (ck and self.step % ck == 0):
+            self.flush_losses(bar)  # validation and checkpoints see every step's loss
         if every and self.step % every == 0 and not self.done() and self.world.writer and evaluation.validation_due(self):
             psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
             bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")

@@ -42,7 +42,8 @@ def eval_run(
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
-    scene, model, cfg = load_run(folder, announce(device))
+    device = announce(device)
+    scene, model, cfg = load_run(folder, device)
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)
     bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]

@@ -72,7 +72,8 @@ def mesh(
     require_all(MESH_DEPENDENCIES)
     if threads is not None:
         torch.set_num_threads(threads)
-    scene, model, _ = load_run(Path(run_dir), announce(device))
+    device = announce(device)
+    scene, model, _ = load_run(Path(run_dir), device)
     result = mesh_model(cfg, model, scene, views, device)
     paths = write_meshes(result, out, scene.world_from_input)
     print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()]}, indent=2))

@@ -55,7 +55,8 @@ def render(
     wh = None if size is None else _parse_size(size)
     require_all(SEQUENCE_DEPENDENCIES)
     camera_path = read_camera_path(Path(path)) if from_file else None  # a bad file is refused before the run loads
-    scene, model, cfg = load_run(Path(run_dir), announce(device))
+    device = announce(device)
+    scene, model, cfg = load_run(Path(run_dir), device)
     cams = path_cameras(scene, path, frames) if camera_path is None else camera_path.cameras.to(dtype=torch.float32)
     name, fps = (path, 15.0) if camera_path is None else (Path(path).stem, camera_path.fps)
     if wh is not None:

@@ -40,7 +40,8 @@ def view(
                    ("seconds", seconds is None or seconds >= 0, "0 or more", seconds)])  # fmt: skip
     require_all(VIEWER_DEPENDENCIES)
     start = time.perf_counter()
-    source = open_source(Path(path), announce(device))
+    device = announce(device)
+    source = open_source(Path(path), device)
     default_file = (source.run_dir if source.run_dir is not None else Path(".")) / "camera_path.json"
     viewer = Viewer(source.scene, source.render, host, port, path_file or default_file, source.mesh, max_size)
     thread = RenderThread(viewer.renderers)
