@@ -3,7 +3,7 @@ behind the default choices (PSNR at equal step counts is deterministic on CPU; s
 
 Run: ``python -m benchmarks.steps LEGO --options coarse_to_fine_every=32 mlp_lr=0.01 --marks 100 200 300``.
 Prints one JSON line per mark (step, cumulative training seconds, wall and CPU/threads, val PSNR over
-``--eval-views`` views, mean samples per ray, load) and appends them to ``--log`` when given.
+``--eval-views`` views, mean samples per ray, ATen ops and host syncs per step over the steps before the mark, load) and appends them to ``--log`` when given.
 ``occupancy.NAME=VALUE`` sets an option of the occupancy grid, ``behind.NAME=VALUE`` one of the field behind the box.
 """
 
@@ -13,6 +13,7 @@ if __name__ == "__main__":  # run as a program: the CLI's process settings, befo
     runtime.apply()
 
 import ast
+import contextlib
 import dataclasses
 import json
 import os
@@ -43,6 +44,8 @@ class StepsConfig:
     threads: int = 2
     rays_per_step: int = 4096
     seed: int = 0
+    counted_steps: int = 16
+    """Steps before each mark whose ATen ops and host syncs are counted (:mod:`nerfpipe.opcount`; timed with the rest)."""
     name: str = ""
     """Label of the JSON lines (default: the options)."""
     log: "Path | None" = None
@@ -65,6 +68,7 @@ def main(cfg: StepsConfig) -> "list[dict]":
     from nerfpipe.data_adapters import load
 
     from nerfpipe import evaluation, runtime
+    from nerfpipe.opcount import DispatchCounter
     from nerfpipe.trainer import Trainer
 
     torch.set_num_threads(cfg.threads)
@@ -75,13 +79,19 @@ def main(cfg: StepsConfig) -> "list[dict]":
         trainer = Trainer(tcfg, scene, "fast", model_config(cfg.preset, cfg.options), Path(tmp))
         trainer.model.train()
         for mark in cfg.marks:
+            counter, counted = DispatchCounter(), 0
             while trainer.step < mark:
+                counting = trainer.step >= mark - cfg.counted_steps
+                counted += counting
                 w0, c0 = time.perf_counter(), time.process_time()
-                trainer.train_step()
+                with counter if counting else contextlib.nullcontext():
+                    trainer.train_step()
                 wall, cpu = wall + time.perf_counter() - w0, cpu + time.process_time() - c0
             psnr, _ = evaluation.validate(trainer, cfg.eval_views)
+            counted = max(counted, 1)
             rows.append(dict(name=cfg.name or " ".join(cfg.options) or "default", step=mark, wall=round(wall, 3),
                              cpu=round(cpu / cfg.threads, 3), psnr=round(psnr, 3), samples_per_ray=round(trainer.model.stats()["samples_per_ray"], 2),
+                             aten_ops_per_step=round(counter.ops / counted, 1), host_syncs_per_step=round(counter.syncs / counted, 2),
                              load=round(os.getloadavg()[0], 2), omp_wait=runtime.OMP_WAIT))
             print(json.dumps(rows[-1]), flush=True)
     append_log(cfg.log, rows)

@@ -23,6 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+COUNTED_STEPS = 4
+"""Training steps after each budget whose ATen ops and host syncs are counted (:mod:`nerfpipe.opcount`)."""
+
 PRESET_NAMES = ("vanilla", "fast-small", "fast-medium", "fast-large")
 """Default presets; ``fast`` (capacity chosen from the scene) is also available."""
 
@@ -140,14 +143,25 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> 
     trainer = _trainer(scene, name, cfg, out)
     trainer.out.mkdir(parents=True, exist_ok=True)
     trainer.model.train()
+    import torch
+
+    from nerfpipe.opcount import count_steps
+
     clock, rows = _Clock(cfg.clock, cfg.threads), []
+
+    def step() -> None:
+        w0, c0 = time.perf_counter(), time.process_time()
+        trainer.train_step()
+        clock.add(time.perf_counter() - w0, time.process_time() - c0)
+
     for budget in sorted(cfg.budgets):
         while clock.seconds < budget:
-            w0, c0 = time.perf_counter(), time.process_time()
-            trainer.train_step()
-            clock.add(time.perf_counter() - w0, time.process_time() - c0)
+            step()
         rows.append(_score(trainer, cfg, name, budget, clock))
         r = rows[-1]
+        r.update(count_steps(step, COUNTED_STEPS).row())  # the next steps (training goes on), after the score
+        if torch.device(trainer.cfg.device).type == "cuda":
+            r["peak_gpu_mb"] = torch.cuda.max_memory_allocated(trainer.cfg.device) / 2**20
         print(f"{name:12s} {budget:6g} s: {r['val_psnr']:.2f} dB after {r['iterations']} it "
               f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f}, OpenMP waits: {r['omp_wait']})", flush=True)
         if on_row is not None:
@@ -162,15 +176,16 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
     write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
     lines = [
         f"# Speed against error on {scene_name}", "",
-        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | finest level | occupied | samples/ray | load | OpenMP waits |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | finest level | occupied | samples/ray | ATen ops/step | syncs/step | load | OpenMP waits |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in rows:
         lines.append(
             f"| {r['preset']} | {r['budget_s']:g} | {r['train_s']:.1f} | {r['train_cpu_s']:.1f} | {r['iterations']} | "
             f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | {fmt(r.get('finest_resolution'), '.0f')} | "
-            f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
+            f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {fmt(r.get('aten_ops_per_step'), '.0f')} | "
+            f"{fmt(r.get('host_syncs_per_step'), '.1f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
         )
     atomic_write(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
     plot(rows, out / "psnr_vs_seconds.png", scene_name)

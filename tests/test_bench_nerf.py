@@ -46,6 +46,8 @@ def test_bench_run_scores_each_budget(scene_path, tmp_path):
     assert [r["budget_s"] for r in rows] == [0.2, 0.5]
     assert rows[0]["clock_s"] >= 0.2 and rows[1]["clock_s"] >= 0.5 and rows[1]["iterations"] >= rows[0]["iterations"] >= 1
     assert (tmp_path / "out" / "table.md").is_file()
+    assert all(r["aten_ops_per_step"] > 0 and r["host_syncs_per_step"] >= 0 for r in rows)  # counted after each budget
+    assert "syncs/step" in (tmp_path / "out" / "table.md").read_text()
 
 
 def test_preset_overrides_reach_the_model_config():
