@@ -80,9 +80,23 @@ def tol():
     return lambda dtype: TOLERANCES[dtype]
 
 
-@pytest.fixture(params=["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+CUDA = torch.cuda.is_available() and torch.cuda.device_count() > 0
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=pytest.mark.requires_cuda)])
 def device(request) -> torch.device:
+    """Every device the numerical tests run on: the CPU, and CUDA where there is one (skipped elsewhere)."""
     return torch.device(request.param)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``requires_cuda`` (the one GPU marker) are skipped on machines without CUDA."""
+    if CUDA:
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA device (none on this machine)")
+    for item in items:
+        if "requires_cuda" in item.keywords:
+            item.add_marker(skip)
 
 
 @pytest.fixture(params=[torch.float32, torch.float64])
