@@ -151,3 +151,21 @@ def test_two_level_skipping_in_rounds_keeps_the_same_samples():
     assert len(ref) > 100
     assert torch.equal(got.ray_indices, ref.ray_indices) and torch.equal(got.t_starts, ref.t_starts)
     assert torch.equal(sigma, ref_sigma)
+
+
+def _occupied_aabb_reference(grid) -> torch.Tensor:
+    """The box of the occupied cells, from their list (the whole box when none is)."""
+    r = grid.cfg.resolution
+    ijk = grid.binary.view(r, r, r).nonzero()
+    if not len(ijk):
+        return grid.aabb.clone()
+    cell = (grid.aabb[1] - grid.aabb[0]) / r
+    return torch.stack([grid.aabb[0] + ijk.min(0).values * cell, grid.aabb[0] + (ijk.max(0).values + 1) * cell])
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.0005, 0.02, 1.0])
+def test_occupied_aabb_on_the_device_matches_the_list_of_occupied_cells(fraction, device):
+    grid = OccupancyGridConfig(resolution=12).setup(torch.tensor([[-1.0, -0.5, 0.0], [1.0, 2.0, 0.7]])).to(device)
+    gen = torch.Generator().manual_seed(int(fraction * 1e4))
+    grid.binary.copy_(torch.rand(12**3, generator=gen) < fraction)
+    assert torch.equal(grid.occupied_aabb(), _occupied_aabb_reference(grid))

@@ -181,7 +181,7 @@ class OccupancyGrid(nn.Module):
         else:
             self.density[cells] = torch.maximum(self.density[cells] * self.cfg.ema_decay, new)
         occ = self.density * step_size
-        thre = min(self.cfg.threshold, float(occ.clamp(min=0).mean()))
+        thre = occ.clamp(min=0).mean().clamp(max=self.cfg.threshold)  # on the device: no read back
         self.binary.copy_(occ > thre)
 
     def _cells_to_refresh(self, generator: "torch.Generator | None") -> Int[Tensor, "num_refreshed"]:
@@ -194,19 +194,19 @@ class OccupancyGrid(nn.Module):
         return torch.cat([uniform, occupied]).unique()
 
     def occupied_aabb(self) -> Float[Tensor, "2 3"]:
-        """The smallest box around the occupied cells (the whole box when none is)."""
+        """The smallest box around the occupied cells (the whole box when none is), computed on the device:
+        per axis the first and last occupied slab (``argmax`` of the slabs' occupancy, from either end)."""
         r = self.cfg.resolution
         occ = self.binary.view(r, r, r)
-        if not occ.any():
-            return self.aabb.clone()
         lo, hi = [], []
         for axis in range(3):
             other = tuple(a for a in range(3) if a != axis)
-            nz = occ.any(dim=other[1]).any(dim=other[0]).nonzero()[:, 0]
-            lo.append(nz.min())
-            hi.append(nz.max() + 1)
+            slabs = occ.any(dim=other[1]).any(dim=other[0]).byte()
+            lo.append(slabs.argmax())
+            hi.append(r - slabs.flip(0).argmax())
         cell = (self.aabb[1] - self.aabb[0]) / r
-        return torch.stack([self.aabb[0] + torch.stack(lo) * cell, self.aabb[0] + torch.stack(hi) * cell])
+        box = torch.stack([self.aabb[0] + torch.stack(lo) * cell, self.aabb[0] + torch.stack(hi) * cell])
+        return torch.where(occ.any(), box, self.aabb)
 
     def _limits(self, origins, directions, near, far, step_size, jitter, aabb, generator=None) -> "_Limits":
         box = self.aabb if aabb is None else aabb
