@@ -18,16 +18,16 @@ STEP = 0.05
 MIN_T = 1e-4
 
 
-def rays(n, seed):
+def rays(n, seed, device="cpu"):
     """Rays from a sphere of radius 3 towards the box; the last quarter aimed to miss it."""
     g = torch.Generator().manual_seed(seed)
     origins = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * 3
     target = (torch.rand(n, 3, generator=g) - 0.5) * 2.2
     target[3 * n // 4 :] = origins[3 * n // 4 :] * 2  # pointing away: no samples
-    return origins, torch.nn.functional.normalize(target - origins, dim=-1)
+    return origins.to(device), torch.nn.functional.normalize(target - origins, dim=-1).to(device)
 
 
-def scene(seed):
+def scene(seed, device="cpu"):
     """An occupancy grid and a density per cell: transparent (x < -0.5), huge (a few cells), random."""
     g = torch.Generator().manual_seed(seed)
     grid = OccupancyGridConfig(resolution=RES).setup(AABB)
@@ -36,6 +36,7 @@ def scene(seed):
     table[torch.rand(RES**3, generator=g) < 0.05] = 1e30
     centers = grid.cell_centers(jitter=False)
     table[centers[:, 0] < -0.5] = 0.0
+    grid, table = grid.to(device), table.to(device)
 
     def density(points):
         idx, _ = grid.cell_index(points)
@@ -75,9 +76,9 @@ ROUNDS = {"default": Rounds(), "small_chunked": Rounds(first=1, most=4, steps_pe
 @pytest.mark.parametrize("rounds", ROUNDS.values(), ids=ROUNDS.keys())
 @pytest.mark.parametrize("jitter", [False, True])
 @pytest.mark.parametrize("min_alpha", [None, 1e-4])
-def test_rounds_keep_exactly_the_reference_samples(rounds, jitter, min_alpha):
-    grid, density = scene(seed=0)
-    o, d = rays(400, seed=1)
+def test_rounds_keep_exactly_the_reference_samples(rounds, jitter, min_alpha, device):
+    grid, density = scene(seed=0, device=device)
+    o, d = rays(400, seed=1, device=device)
     full, ref, ref_sigma = reference(grid, o, d, Counting(density, o, d), min_alpha, jitter, seed=2)
     torch.manual_seed(2)  # the same jitter
     got, sigma = grid.march_until_opaque(o, d, 0.0, 10.0, STEP, Counting(density, o, d), MIN_T, min_alpha, jitter=jitter, rounds=rounds)
@@ -90,7 +91,7 @@ def test_rounds_keep_exactly_the_reference_samples(rounds, jitter, min_alpha):
     first_sigma = torch.where(first >= 0, density(full.points(o, d))[first.clamp(min=0)], 0.0)
     assert (marched == 0).sum() >= 50
     assert ((first_sigma == 1e30) & (kept == 1) & (marched > 1)).any()
-    transparent = (marched > 0) & (torch.zeros(400).index_add_(0, full.ray_indices, density(full.points(o, d))) == 0)
+    transparent = (marched > 0) & (torch.zeros(400, device=device).index_add_(0, full.ray_indices, density(full.points(o, d))) == 0)
     assert transparent.sum() >= 3
     assert (kept[transparent] == (0 if min_alpha is not None else marched[transparent])).all()
 

@@ -25,10 +25,25 @@ def points(n, dtype, seed=0):
     return x
 
 
-def test_trilinear_matches_loop_reference(dtype, tol):
+def test_trilinear_matches_loop_reference(dtype, tol, device):
     table = torch.randn(RES[0] * RES[1] * RES[2], 3, dtype=dtype)
     x = points(30, dtype)
-    torch.testing.assert_close(trilinear(table, RES, x), trilinear_loop(table, RES, x), **tol(dtype))
+    got = trilinear(table.to(device), RES, x.to(device)).cpu()
+    torch.testing.assert_close(got, trilinear_loop(table, RES, x), **tol(dtype))
+
+
+def test_gather_gradients_match_dense_products(device, tol):
+    """The gather's backward (one ``index_add_``) against autograd through plain indexing, values and gradients."""
+    g = torch.Generator().manual_seed(5)
+    table = torch.randn(RES[0] * RES[1] * RES[2], 3, generator=g).to(device)
+    idx, w = trilinear_corners(points(40, torch.float32).to(device), RES)
+    coef = torch.randn(40, 3, generator=g).to(device)
+    t1, w1 = table.clone().requires_grad_(), w.clone().requires_grad_()
+    (grid_gather(t1, idx, w1) * coef).sum().backward()
+    t2, w2 = table.clone().requires_grad_(), w.clone().requires_grad_()
+    ((w2[:, :, None] * t2[idx]).sum(1) * coef).sum().backward()
+    torch.testing.assert_close(t1.grad, t2.grad, **tol(torch.float32))
+    torch.testing.assert_close(w1.grad, w2.grad, **tol(torch.float32))
 
 
 def test_trilinear_matches_grid_sample(tol):
@@ -236,11 +251,13 @@ def test_tiny_training_run_learns(tiny_scene, tmp_path):
     assert trainer.optimizer.param_groups[0]["lr"] < model.grid_lr  # the model's schedule reached the optimiser
 
 
-def test_resume_keeps_the_learning_rate_schedule(tiny_scene, tmp_path):
-    """Loading a checkpoint replaces the optimiser's group dicts; the schedule must still reach them."""
+def test_resume_keeps_the_learning_rate_schedule(tiny_scene, tmp_path, device):
+    """Loading a checkpoint replaces the optimiser's group dicts; the schedule must still reach them. On CUDA the
+    model's random stream is a CUDA generator, saved with the checkpoint: the continuation is as exact."""
     model = FastConfig(levels=(12, 24), feature_channels=2, hidden=16, step_ratio=1.0, tighten_step=6, lr_decay_steps=4,
                        occupancy=OccupancyGridConfig(resolution=24, warmup_steps=2, update_every=2))
-    cfg = lambda **kw: TrainerConfig(**{**dict(iters=10, rays_per_step=256, eval_every=0, video_frames=0, checkpoint_every=0, seed=0, write_outputs=False), **kw})  # noqa: E731
+    base = dict(iters=10, rays_per_step=256, eval_every=0, video_frames=0, checkpoint_every=0, seed=0, write_outputs=False, device=str(device))
+    cfg = lambda **kw: TrainerConfig(**{**base, **kw})  # noqa: E731
     straight = Trainer(cfg(), tiny_scene, "fast", model, tmp_path / "straight")
     straight.train()
     Trainer(cfg(iters=5), tiny_scene, "fast", model, tmp_path / "split").train()

@@ -32,24 +32,25 @@ def pad(values, ray_indices, pos, num_rays, smax):
     return out
 
 
-def test_weights_match_dense_padded(dtype, tol):
+def test_weights_match_dense_padded(dtype, tol, device):
     sigmas, deltas, ri, pos, smax = ragged(dtype)
-    w, t = render_weights_packed(sigmas, deltas, ri)
+    w, t = render_weights_packed(sigmas.to(device), deltas.to(device), ri.to(device))
+    w, t = w.cpu(), t.cpu()
     wd, td = render_weights(pad(sigmas, ri, pos, 5, smax), pad(deltas, ri, pos, 5, smax))
     torch.testing.assert_close(w, wd[ri, pos], **tol(dtype))
     torch.testing.assert_close(t, td[ri, pos], **tol(dtype))
 
 
-def test_gradients_match_dense_padded(dtype, tol):
+def test_gradients_match_dense_padded(dtype, tol, device):
     sigmas, deltas, ri, pos, smax = ragged(dtype, seed=1)
     coef = torch.randn(len(sigmas), dtype=dtype)
-    s1 = sigmas.clone().requires_grad_()
-    w, _ = render_weights_packed(s1, deltas, ri)
-    (w * coef).sum().backward()
+    s1 = sigmas.clone().to(device).requires_grad_()
+    w, _ = render_weights_packed(s1, deltas.to(device), ri.to(device))
+    (w * coef.to(device)).sum().backward()
     s2 = pad(sigmas, ri, pos, 5, smax).requires_grad_()
     wd, _ = render_weights(s2, pad(deltas, ri, pos, 5, smax))
     (wd * pad(coef, ri, pos, 5, smax)).sum().backward()
-    torch.testing.assert_close(s1.grad, s2.grad[ri, pos], **tol(dtype))
+    torch.testing.assert_close(s1.grad.cpu(), s2.grad[ri, pos], **tol(dtype))
 
 
 def test_gradcheck_float64():
