@@ -46,13 +46,11 @@ TINY_LEGO_SIZE = 40
 
 
 @pytest.fixture(scope="session")
-def tiny_lego(scene_path, tmp_path_factory):
-    """Every 4th training view of lego_200x200 and 2 validation views, area-resized to 40x40 and loaded
-    (a CS180 npz written to a temp folder, not the repo): a lego-like scene a fast model trains on in ms per step."""
+def tiny_lego_npz(scene_path, tmp_path_factory) -> Path:
+    """Every 4th training view of lego_200x200 and 2 validation views, area-resized to 40x40: a CS180 npz in a
+    temp folder (not the repo), a lego-like scene a fast model trains on in milliseconds per step."""
     import numpy as np
     import torch.nn.functional as F
-
-    from nerfpipe.data_adapters import load
 
     def shrink(images):
         t = torch.from_numpy(images).permute(0, 3, 1, 2).float()
@@ -63,7 +61,15 @@ def tiny_lego(scene_path, tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny_lego") / "tiny_lego.npz"
     np.savez(out, images_train=shrink(src["images_train"][::4]), c2ws_train=src["c2ws_train"][::4], images_val=shrink(src["images_val"][:2]),
              c2ws_val=src["c2ws_val"][:2], c2ws_test=src["c2ws_test"][::20], focal=np.float64(src["focal"]) * TINY_LEGO_SIZE / 200)
-    return load(out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_lego(tiny_lego_npz):
+    """:func:`tiny_lego_npz`, loaded."""
+    from nerfpipe.data_adapters import load
+
+    return load(tiny_lego_npz)
 
 
 # Tolerances by dtype, not magic numbers per test (kornia's _DTYPE_PRECISIONS idea).

@@ -63,3 +63,30 @@ def test_the_trainer_records_the_resolved_device(tiny_lego, tmp_path, monkeypatc
     assert trainer.cfg.device == "cpu" and trainer.model.generator.device.type == "cpu"
     trainer.write_config()
     assert '"device": "cpu"' in (tmp_path / "config.json").read_text()
+
+
+def test_train_prints_the_resolved_device_first(tiny_lego_npz, tmp_path, monkeypatch, capsys):
+    """``nerfpipe train`` without ``--device`` runs on auto's pick and says which before anything else."""
+    from nerfpipe.cli import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    npz = tiny_lego_npz
+    assert main(["train", str(npz), "--out", str(tmp_path / "run"), "--iters", "1", "--rays-per-step", "16", "--video-frames", "0",
+                 "--eval-every", "0", "--no-write-outputs", "--model.levels", "4", "8"]) == 0
+    assert capsys.readouterr().err.lstrip().startswith("device: cpu (")
+
+
+@pytest.mark.requires_cuda
+def test_the_default_chain_runs_on_cuda_with_device_auto(tmp_path):
+    """The CUDA smoke run: the synthetic scene through the default chain (shrunk as test_demo shrinks it) on auto's
+    pick, which is CUDA on a machine with a GPU."""
+    import json
+
+    from nerfpipe.plugins.train import TRAIN_DIR
+    from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
+    from nerfpipe.synthetic import SynthConfig, generate
+    from test_demo import _tiny_configs
+
+    scene = generate(tmp_path / "scene", SynthConfig(views=16, width=48, height=48, num_points=800))
+    Pipeline(list(DEFAULT_CHAIN), _tiny_configs()).run(scene.path, tmp_path / "run", resume=False, device=devices.AUTO)
+    assert json.loads((tmp_path / "run" / TRAIN_DIR / "config.json").read_text())["trainer"]["device"] == "cuda"
