@@ -123,10 +123,12 @@ def undistort(
 def _dispatch(xy, kind, params, opencv_fn, fisheye_fn):
     # Each model runs only on its own elements, so one model's parameters never reach the
     # other's formula (no NaN in unused branches, hence none in gradients).
-    out = xy
-    for code, fn in ((Distortion.OPENCV, opencv_fn), (Distortion.FISHEYE, fisheye_fn)):
-        mask = kind == code
-        if bool(mask.any()):
+    # Which models occur is read back once for both (a host sync on CUDA; two reads were two).
+    out, models = xy, ((Distortion.OPENCV, opencv_fn), (Distortion.FISHEYE, fisheye_fn))
+    present = torch.stack([(kind == code).any() for code, _ in models]).tolist()
+    for (code, fn), found in zip(models, present):
+        if found:
+            mask = kind == code
             out = out.clone() if out is xy else out
             out[mask] = fn(xy[mask], params[mask])
     return out
