@@ -76,10 +76,11 @@ def describe(device: "str | torch.device") -> str:
     return f"device: {dev}"
 
 
-def announce(device: "str | torch.device", flag: str = "--device") -> str:
-    """:func:`check_device`, and the resolved device printed (stderr) as the first line of a command."""
+def announce(device: "str | torch.device", flag: str = "--device", file=None) -> str:
+    """:func:`check_device`, and the resolved device printed as a command's first line of output (stdout by
+    default: stderr stays the one line of an error, and a command whose stdout is data passes ``sys.stderr``)."""
     import sys
 
     resolved = check_device(device, flag)
-    print(describe(resolved), file=sys.stderr, flush=True)
+    print(describe(resolved), file=file or sys.stdout, flush=True)
     return resolved

@@ -73,7 +73,7 @@ def test_train_prints_the_resolved_device_first(tiny_lego_npz, tmp_path, monkeyp
     npz = tiny_lego_npz
     assert main(["train", str(npz), "--out", str(tmp_path / "run"), "--iters", "1", "--rays-per-step", "16", "--video-frames", "0",
                  "--eval-every", "0", "--no-write-outputs", "--model.levels", "4", "8"]) == 0
-    assert capsys.readouterr().err.lstrip().startswith("device: cpu (")
+    assert capsys.readouterr().out.lstrip().startswith("device: cpu (")  # stdout: stderr is for the one line of an error
 
 
 @pytest.mark.requires_cuda

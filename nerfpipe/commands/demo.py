@@ -37,13 +37,13 @@ def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_second
         device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
     from nerfpipe.commands.run import _console, _log_to, installed_stages, run_and_print
-    from nerfpipe.devices import announce
+    from nerfpipe.devices import check_device
     from nerfpipe.errors import refuse_unless
     from nerfpipe.paths import check_output_folder
     from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
     from nerfpipe.synthetic import SynthConfig, generate
 
-    device = announce(device)  # before the scene is rendered into OUT
+    device = check_device(device)  # before the scene is rendered into OUT (printed with the chain)
     check_output_folder(out)
     refuse_unless([("time_budget", time_budget > 0, "positive seconds", time_budget),
                    ("train_seconds", train_seconds > 0, "positive seconds", train_seconds)])  # fmt: skip

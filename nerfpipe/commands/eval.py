@@ -28,6 +28,7 @@ def eval_run(
         json: print the result as JSON only.
     """
     import json as _json
+    import sys
     import time
 
     from nerfpipe.atomic import write_json
@@ -42,7 +43,7 @@ def eval_run(
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
-    device = announce(device)
+    device = announce(device, file=sys.stderr if json else None)  # stdout: the JSON alone
     scene, model, cfg = load_run(folder, device)
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)

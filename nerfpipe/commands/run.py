@@ -180,9 +180,9 @@ def run_main(argv: "list[str]") -> int:
     pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
     pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
     run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
-    from nerfpipe.devices import announce
+    from nerfpipe.devices import check_device
 
-    run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=announce(cmd.device), time_budget=cmd.time_budget)
+    run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=check_device(cmd.device), time_budget=cmd.time_budget)
     return 0
 
 
@@ -194,6 +194,9 @@ def run_and_print(pipe, path, run_dir: Path, console, **options):
     if not env_world().writer:
         logging.getLogger("nerfpipe").setLevel(logging.WARNING)
         return pipe.run(path, run_dir, **options)
+    from nerfpipe.devices import check_device, describe
+
+    console.print(describe(check_device(options.get("device", "auto"))))
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
     result = pipe.run(path, run_dir, **options)
     console.print(_summary_table(result))
