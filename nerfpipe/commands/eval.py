@@ -24,15 +24,14 @@ def eval_run(
         scale: resolution factor of the renders (ground truth is area-resized to match).
         max_size: longer side of the renders in pixels at most (none: full size).
         chunk: rays per forward pass (bounds memory).
-        device: torch device (auto: CUDA when present, else CPU; printed at start).
+        device: torch device (auto: CUDA when present, else CPU; printed first, or named in the JSON).
         json: print the result as JSON only.
     """
     import json as _json
-    import sys
     import time
 
     from nerfpipe.atomic import write_json
-    from nerfpipe.devices import announce
+    from nerfpipe.devices import check_device, describe
     from nerfpipe.errors import refuse_unless, require
     from nerfpipe.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
     from nerfpipe.pixel_sampler import background_colors
@@ -43,7 +42,9 @@ def eval_run(
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
-    device = announce(device, file=sys.stderr if json else None)  # stdout: the JSON alone
+    device = check_device(device)
+    if not json:  # with --json, stdout is the JSON alone (it names the device)
+        print(describe(device), flush=True)
     scene, model, cfg = load_run(folder, device)
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)
@@ -56,7 +57,7 @@ def eval_run(
         "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
         "lpips": _mean(scores["lpips"]) if lpips is not None else None, "lpips_note": lpips_note,
         "per_view": [{"view": i, "psnr": p, "ssim": s} for i, p, s in zip(idx, scores["psnr"], scores["ssim"])],
-        "seconds": time.perf_counter() - start,
+        "seconds": time.perf_counter() - start, "device": device,
     }
     write_json(folder / "eval.json", result)
     if json:

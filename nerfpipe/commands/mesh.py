@@ -48,14 +48,14 @@ def mesh(
         tsdf_size: longer side in pixels of the tsdf depth renders.
         chunk: rays per forward pass when rendering (tsdf).
         out: output folder (default RUN_DIR/mesh).
-        device: torch device (auto: CUDA when present, else CPU; printed at start).
+        device: torch device (auto: CUDA when present, else CPU; named in the printed JSON).
         threads: torch CPU threads (default: torch's; 1 is much faster on a machine busier than its cores).
     """
     import json
 
     import torch
 
-    from nerfpipe.devices import announce
+    from nerfpipe.devices import check_device
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig, write_meshes
     from nerfpipe.paths import check_output_folder
@@ -72,9 +72,9 @@ def mesh(
     require_all(MESH_DEPENDENCIES)
     if threads is not None:
         torch.set_num_threads(threads)
-    device = announce(device)
+    device = check_device(device)  # stdout is the JSON, which names it
     scene, model, _ = load_run(Path(run_dir), device)
     result = mesh_model(cfg, model, scene, views, device)
     paths = write_meshes(result, out, scene.world_from_input)
-    print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()]}, indent=2))
+    print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()], "device": device}, indent=2))
     return 0

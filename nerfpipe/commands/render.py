@@ -28,7 +28,7 @@ def render(
         size: output size WxH, e.g. 800x800 (default: the cameras' own).
         frames: number of frames (test and orbit; a file gives its own).
         chunk: rays per forward pass (bounds memory).
-        device: torch device (auto: CUDA when present, else CPU; printed at start).
+        device: torch device (auto: CUDA when present, else CPU; named in the printed JSON).
         pngs: also write every colour frame losslessly, as renders/<name>_frames/00000.png, ...
     """
     import json
@@ -38,7 +38,7 @@ def render(
     from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES, write_sequence
     from nerfpipe.atomic import write_json
     from nerfpipe.camera_path import read_camera_path
-    from nerfpipe.devices import announce
+    from nerfpipe.devices import check_device
     from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.orbit import path_cameras
     from nerfpipe.pixel_sampler import BACKGROUNDS, background_colors
@@ -55,7 +55,7 @@ def render(
     wh = None if size is None else _parse_size(size)
     require_all(SEQUENCE_DEPENDENCIES)
     camera_path = read_camera_path(Path(path)) if from_file else None  # a bad file is refused before the run loads
-    device = announce(device)
+    device = check_device(device)  # stdout is the JSON, which names it
     scene, model, cfg = load_run(Path(run_dir), device)
     cams = path_cameras(scene, path, frames) if camera_path is None else camera_path.cameras.to(dtype=torch.float32)
     name, fps = (path, 15.0) if camera_path is None else (Path(path).stem, camera_path.fps)
@@ -65,6 +65,7 @@ def render(
     with torch.no_grad():
         views = render_cameras(model, cams.to(device), chunk, background_colors(bg, 1)[0])
     info = write_sequence(views, Path(run_dir) / "renders", name, depth=depth, fps=fps)
+    info["device"] = device
     if pngs:
         info["pngs"] = str(_write_pngs(views, Path(run_dir) / "renders" / f"{name}_frames"))
     write_json(Path(run_dir) / "renders" / (f"{name}.json" if camera_path is None else f"{name}.render.json"), info)
