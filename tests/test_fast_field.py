@@ -299,3 +299,18 @@ def test_briefly_trained_model_renders_the_same_with_early_termination(tiny_scen
     for a, b in zip(views[True], views[False]):
         for key in ("rgb", "depth", "acc"):
             torch.testing.assert_close(getattr(a, key), getattr(b, key), rtol=1e-6, atol=1e-6)
+
+
+def test_voxel_size_is_read_once_per_box_and_follows_a_new_box():
+    """The voxel size is cached per box (a host read on CUDA each time otherwise) and recomputed when the box changes."""
+    from nerfpipe.fields.fast_field import FastField
+    from nerfpipe.opcount import DispatchCounter
+
+    field = FastField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), [(9, 9, 9), (17, 17, 5)])
+    direct = lambda level: float(((field.aabb[1] - field.aabb[0]) / (torch.tensor(field.density_grid.resolutions[level]) - 1.0)).min())  # noqa: E731
+    assert field.voxel_size(1) == direct(1) == 0.125
+    with DispatchCounter() as c:
+        field.voxel_size(1)
+    assert c.ops == 0
+    field.aabb.copy_(torch.tensor([[-1.0, -1.0, -1.0], [0.0, 1.0, 1.0]]))  # a tightened box
+    assert field.voxel_size(1) == direct(1) == 0.0625 and field.voxel_size(0) == direct(0)
