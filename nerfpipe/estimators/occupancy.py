@@ -237,7 +237,7 @@ class OccupancyGrid(nn.Module):
         if key not in self._span_cache:
             if len(self._span_cache) > 8:
                 self._span_cache.clear()
-            grid, marched = self.aabb.detach().cpu(), box.detach().cpu()
+            grid, marched = torch.stack([self.aabb, box.to(self.aabb)]).detach().cpu()  # one read for both
             h = float(((grid[1] - grid[0]) / self.cfg.resolution).min()) * self.cfg.skip_factor
             diagonal = float((marched[1] - marched[0]).norm())
             self._span_cache[key] = h, max(int(math.ceil(diagonal / h * 1.001)) + 2, 1)
