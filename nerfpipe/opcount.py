@@ -14,6 +14,8 @@ Glossary:
     sync    an op (or tensor method) that makes the host wait for the device
     upload  a tensor built from Python values (``torch.tensor([...])``): a blocking host-to-device copy on
             CUDA (the stream is synchronised before the host memory is released), counted as a sync too
+    transfer  a copy between devices (``.to(device)``, ``.cpu()``): a sync unless ``non_blocking`` from the host;
+            seen only where there are two devices (on CUDA), not on a CPU-only run
 
 Example:
     >>> x = torch.arange(4.0)
@@ -56,6 +58,22 @@ def _has_bool_index(args) -> bool:
     return any(isinstance(t, torch.Tensor) and t.dtype in (torch.bool, torch.uint8) for t in indices or ())
 
 
+def _transfer(name: str, args, kwargs) -> "str | None":
+    """``device-to-host`` or ``host-to-device`` for a copy between devices that makes the host wait (a copy to the
+    host always does; one from pageable host memory does unless ``non_blocking``), else None. Never on a CPU-only run."""
+    if name == "aten._to_copy" and args and kwargs.get("device") is not None:
+        src, dst, non_blocking = args[0].device, torch.device(kwargs["device"]), kwargs.get("non_blocking", False)
+    elif name == "aten.copy_" and len(args) > 1 and isinstance(args[1], torch.Tensor):
+        src, dst, non_blocking = args[1].device, args[0].device, bool(args[2]) if len(args) > 2 else kwargs.get("non_blocking", False)
+    else:
+        return None
+    if src == dst:
+        return None
+    if dst.type == "cpu":
+        return "device-to-host"
+    return None if non_blocking and src.type == "cpu" else "host-to-device"
+
+
 def _repeat_without_size(args, kwargs) -> bool:
     return kwargs.get("output_size") is None and not (len(args) > 2 and args[2] is not None)
 
@@ -75,6 +93,8 @@ class _Tally:
             self.sync_ops[f"{func}(bool)"] += 1
         elif name == "aten.repeat_interleave" and _repeat_without_size(args, kwargs):
             self.sync_ops[name] += 1
+        elif name in ("aten._to_copy", "aten.copy_") and (kind := _transfer(name, args, kwargs)) is not None:
+            self.sync_ops[f"{name}({kind})"] += 1
         elif name in UPLOAD_OPS and args and args[0].ndim > 0:  # (0-dim: a Python scalar made a tensor, e.g. ``x[m] = 0``)
             # a blocking copy from pageable host memory on CUDA: the stream is synchronised
             self.sync_ops[name] += 1

@@ -5,7 +5,7 @@ one tiny kernel after another; both are counted here on the CPU, where they are 
 import pytest
 import torch
 
-from nerfpipe.opcount import DispatchCounter, count_steps
+from nerfpipe.opcount import DispatchCounter, _transfer, count_steps
 
 
 def test_reads_back_and_data_dependent_shapes_are_syncs():
@@ -37,6 +37,24 @@ def test_sizes_known_on_the_host_are_not_syncs():
         x.index_select(0, x.argmax()[None])  # (x[x.argmax()] would read the index back)
         torch.where(x > 2, x, 0.0)
     assert c.syncs == 0, dict(c.sync_ops)
+
+
+def test_copies_between_devices_are_syncs_unless_non_blocking_from_the_host():
+    """``meta`` stands in for a second device on a CPU-only machine."""
+    x = torch.ones(3)
+    with DispatchCounter() as c:
+        x.to("meta")
+    assert dict(c.sync_ops) == {"aten._to_copy(host-to-device)": 1}
+    with DispatchCounter() as c:
+        x.to("meta", non_blocking=True)
+        x.to("cpu")
+        torch.empty(3, device="meta").copy_(x, non_blocking=True)
+    assert c.syncs == 0, dict(c.sync_ops)
+    with DispatchCounter() as c:
+        torch.empty(3, device="meta").copy_(x)
+    assert dict(c.sync_ops) == {"aten.copy_(host-to-device)": 1}
+    from_device = (torch.empty(3, device="meta"),)  # (a meta tensor cannot be read back: the rule alone)
+    assert _transfer("aten._to_copy", from_device, {"device": torch.device("cpu"), "non_blocking": True}) == "device-to-host"
 
 
 def test_backward_is_counted_and_counts_accumulate_and_reset():
