@@ -133,9 +133,9 @@ class PixelSampler:
         nan = torch.full((num_rays - k,), float("nan"))
         return PixelBatch(
             rays=_cat_rays(batch.rays, rays.to(self.device)),
-            rgb=torch.cat([batch.rgb, composite_pixels(pixels, bg).to(self.device)]),
-            background=torch.cat([batch.background, bg.to(self.device)]),
-            depth=torch.cat([nan, t]).to(self.device),
+            rgb=torch.cat([batch.rgb, self._upload(composite_pixels(pixels, bg))]),
+            background=torch.cat([batch.background, self._upload(bg)]),
+            depth=self._upload(torch.cat([nan, t])),
         )
 
     def _uniform(self, num_rays: int, generator: "torch.Generator | None") -> PixelBatch:
@@ -146,8 +146,15 @@ class PixelSampler:
         uv = torch.stack([local % width, local // width], dim=-1).float() + 0.5
         bg = background_colors(self.background, num_rays, generator)
         rgb = composite_pixels(self.pixels[idx], bg)
-        rays = generate_rays(self.cameras, cam.to(self.device), uv.to(self.device))
-        return PixelBatch(rays=rays, rgb=rgb.to(self.device), background=bg.to(self.device))
+        rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv))
+        return PixelBatch(rays=rays, rgb=self._upload(rgb), background=self._upload(bg))
+
+    def _upload(self, t: Tensor) -> Tensor:
+        """A batch tensor drawn on the host, on the sampler's device: to CUDA through pinned memory without
+        blocking (a copy from pageable memory makes the host wait for the stream, once per tensor and step)."""
+        if self.device.type != "cuda":
+            return t.to(self.device)
+        return t.pin_memory().to(self.device, non_blocking=True)
 
 
 def _cat_rays(a: RayBundle, b: RayBundle) -> RayBundle:
