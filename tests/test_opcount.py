@@ -87,14 +87,15 @@ for the rays that start and the samples kept, one for camera undistortion's mode
 Issue 13's goal is 1: it takes fixed-capacity sample buffers."""
 
 
-@pytest.fixture(scope="module")
-def steady_counts(tiny_lego, tmp_path_factory):
+@pytest.fixture(scope="module", params=["cpu", pytest.param("cuda", marks=pytest.mark.requires_cuda)])
+def steady_counts(request, tiny_lego, tmp_path_factory):
+    """Counts of :data:`COUNTED` steady steps on each device (on CUDA the copies between host and device count too)."""
     from nerfpipe.models.fast import FastConfig
     from nerfpipe.trainer import Trainer, TrainerConfig
 
     torch.set_num_threads(1)
     model = FastConfig(preset="small", levels=(16, 32, 48), coarse_to_fine_every=8, tighten_step=24, fine_steps_from=0)
-    cfg = TrainerConfig(iters=10**6, rays_per_step=1024, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False, device="cpu")
+    cfg = TrainerConfig(iters=10**6, rays_per_step=1024, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False, device=request.param)
     trainer = Trainer(cfg, tiny_lego, "fast", model, tmp_path_factory.mktemp("steady"))
     trainer.model.train()
     while trainer.step < STEADY_FROM:
