@@ -159,7 +159,7 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
     subprocess.run([*PY, "render", str(run), "--path", str(file), "--pngs"], check=True, capture_output=True, env=_env())
     diffs = []
     for k in range(frames):
-        headless = iio.imread(run / "renders" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
+        headless = iio.imread(run / "render" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
         shown = viewer.preview_frames.get(k)
         diffs.append(None if shown is None else int(np.abs(headless - shown.astype(int)).max()))  # None: the preview never finished
     return {"path_file": str(file), "frames": frames, "size": list(size), "max_pixel_difference": diffs, "move_latency_split": split}

@@ -277,7 +277,7 @@ def out_under_file_case(command, flags=(), data="blender"):
 # ---------------------------------------------------------------- run-folder cases (render, mesh, stage)
 
 
-def run_case(damage, command="render", flags=(), output="renders"):
+def run_case(damage, command="render", flags=(), output="render"):
     """A copy of the trained run folder, damaged; the command must name the culprit and write no output."""
 
     def make(base, tmp):

@@ -36,3 +36,37 @@ def test_frame_size_caps_the_longer_side():
 
     assert frame_size(Cams, RenderConfig(max_size=400), 1.0) == (400, 300)
     assert frame_size(Cams, RenderConfig(max_size=4000, scale=0.5), 0.5) == (480, 360)
+
+
+def test_the_command_and_the_stage_render_the_same_files(scene_path, tmp_path, capsys):
+    """One renderer: ``nerfpipe render RUN`` on a pipeline run gives the stage's frames for the same path
+    and options, in the same layout (``render/``), next to what is already there."""
+    import json
+    import shutil
+
+    import imageio.v3 as iio
+    import numpy as np
+
+    from nerfpipe.cli import main
+    from nerfpipe.stages import Pipeline
+
+    tiny = {"train": {"model": "vanilla", "model_options": {"num_samples": 8, "field": {"width": 16, "depth": 2, "skip": 1,
+            "head_width": 16, "pos_frequencies": 2, "dir_frequencies": 1}}, "trainer": {"iters": 2, "rays_per_step": 32,
+            "eval_every": 0, "final_eval_views": 1, "eval_scale": 0.1, "write_outputs": False}},
+            "render": {"path": "test", "frames": 3, "scale": 0.1, "pngs": True, "background": "white"}}  # fmt: skip
+    npz = scene_path("lego_200x200") / "lego_200x200.npz"
+    Pipeline(["load", "train", "render"], tiny).run(npz, tmp_path)
+    staged = tmp_path / "staged"
+    shutil.copytree(tmp_path / "render", staged)
+    (tmp_path / "render" / "orbit.gif").write_text("another path's render")  # must stay
+    assert main(["render", str(tmp_path), "--path", "test", "--frames", "3", "--scale", "0.1", "--pngs", "--background", "white", "--device", "cpu"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in (tmp_path / "render").iterdir()) == sorted(["orbit.gif", *(p.name for p in staged.iterdir())])
+    assert (tmp_path / "render" / "orbit.gif").read_text() == "another path's render"
+    pngs = sorted((staged / "test_frames").iterdir())
+    assert len(pngs) == 3 and iio.imread(pngs[0]).shape == (20, 20, 3)
+    for png in pngs:
+        assert np.array_equal(iio.imread(png), iio.imread(tmp_path / "render" / "test_frames" / png.name))
+    ours, theirs = json.loads((tmp_path / "render" / "test.json").read_text()), json.loads((staged / "test.json").read_text())
+    assert printed == ours and ours.pop("device") == "cpu" and ours.pop("budget_plan")["frames"] == theirs.pop("budget_plan")["frames"]
+    assert ours == {k: v for k, v in theirs.items()} and ours["depth_gif"] == str(tmp_path / "render" / "depth_test.gif")

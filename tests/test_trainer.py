@@ -163,9 +163,9 @@ def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     assert main(["render", str(run), "--path", "orbit", "--depth", "--size", "12x10", "--frames", "2", "--background", "white"]) == 0
     import imageio.v3 as iio
 
-    frames = iio.imread(run / "renders" / "orbit.gif")
+    frames = iio.imread(run / "render" / "orbit.gif")
     assert frames.shape[:3] == (2, 10, 12)
-    assert (run / "renders" / "depth_orbit.gif").is_file() and (run / "renders" / "orbit.mp4").is_file()
+    assert (run / "render" / "depth_orbit.gif").is_file() and (run / "render" / "orbit.mp4").is_file()
     assert main(["render", str(run), "--size", "12"]) == 2  # bad size: one-line user error
     assert "--size must be WxH" in capsys.readouterr().err
 

@@ -150,12 +150,12 @@ def test_a_camera_path_renders_headless_as_the_viewer_renders_it(run, tmp_path):
         fov = float(2 * torch.atan(c.height.double() / (2 * c.fy.double())))
         renderer.request(ViewRequest(c.world_from_cam.numpy(), fov, 20 / 16, time.perf_counter(), size=(20, 16)))
         _drain(renderer)
-        headless = iio.imread(run / "renders" / "my_path_frames" / f"{i:05d}.png")
+        headless = iio.imread(run / "render" / "my_path_frames" / f"{i:05d}.png")
         assert headless.shape == frames[-1].image.shape == (16, 20, 3)
         assert np.abs(headless.astype(int) - frames[-1].image.astype(int)).max() <= 1
     whole = render_cameras(open_source(run).model, pinhole_camera(m[0].numpy(), 0.7, 20, 16))[0]  # a whole frame = its strips
-    assert (run / "renders" / "my_path.gif").is_file() and whole.rgb.shape == (16, 20, 3)
-    assert np.abs(to_uint8(whole.rgb).astype(int) - iio.imread(run / "renders" / "my_path_frames" / "00000.png").astype(int)).max() <= 1
+    assert (run / "render" / "my_path.gif").is_file() and whole.rgb.shape == (16, 20, 3)
+    assert np.abs(to_uint8(whole.rgb).astype(int) - iio.imread(run / "render" / "my_path_frames" / "00000.png").astype(int)).max() <= 1
 
 
 def test_bad_camera_path_and_missing_input_are_one_line_errors(run, tmp_path, capsys):
