@@ -59,6 +59,13 @@ def model_dir(run_dir: Path) -> Path:
     return run_dir
 
 
+def find_run(path: Path) -> "Path | None":
+    """The folder of ``path`` that holds a trained model (:func:`model_dir`), or None when ``path`` is no
+    run folder (a dataset, a file); for readers that take a run or something else (``nerfpipe view``)."""
+    folder = model_dir(path)
+    return folder if (folder / CONFIG).is_file() else None
+
+
 def load_run(run_dir: Path, device: str = "cpu"):
     """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode.
 

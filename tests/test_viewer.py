@@ -189,13 +189,13 @@ def test_the_viewer_serves_its_page_on_a_free_port(synth, tmp_path):
 
 def test_view_command_serves_a_dataset_and_finds_a_pipeline_runs_training(synth, tmp_path, capsys):
     _viser()
-    from nerfpipe.viewer.source import trained_folder
+    from nerfpipe.runs import find_run
 
     assert main(["view", str(synth), "--port", "0", "--seconds", "0"]) == 0
     assert "(dataset (no trained field: no live render), 8 cameras) at http://localhost:" in capsys.readouterr().out
     (tmp_path / "pipeline" / "train").mkdir(parents=True)
     (tmp_path / "pipeline" / "train" / "config.json").write_text("{}")
-    assert trained_folder(tmp_path / "pipeline") == tmp_path / "pipeline" / "train" and trained_folder(synth) is None
+    assert find_run(tmp_path / "pipeline") == tmp_path / "pipeline" / "train" and find_run(synth) is None
 
 
 def test_in_headless_chromium_the_page_shows_the_cameras_and_the_live_render(run, tmp_path):

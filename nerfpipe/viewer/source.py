@@ -1,5 +1,5 @@
 """What ``nerfpipe view`` opens: a trained run (a ``nerfpipe train`` folder, or a pipeline run with ``train/``)
-or a dataset (any format ``data_adapters`` reads)."""
+or a dataset (any format ``data_adapters`` reads); a run is found by the one run-folder reader, :mod:`nerfpipe.runs`."""
 
 from dataclasses import dataclass
 from pathlib import Path
@@ -7,7 +7,6 @@ from typing import Callable
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.render import RenderedView
-from nerfpipe.runs import CONFIG
 from nerfpipe.scene import SceneData
 
 
@@ -25,14 +24,6 @@ class ViewSource:
     model: "object | None" = None
 
 
-def trained_folder(path: Path) -> "Path | None":
-    """The folder holding the run's ``config.json``: ``path`` itself, or ``path/train`` (a pipeline run)."""
-    for folder in (path, path / "train"):
-        if (folder / CONFIG).is_file():
-            return folder
-    return None
-
-
 def model_renderer(model, background, device: str, chunk: int = 4096) -> "Callable[[Cameras], RenderedView]":
     """The one renderer (:func:`nerfpipe.render.render_cameras`) for a ``[1]`` camera batch."""
     from nerfpipe.render import render_cameras
@@ -45,15 +36,14 @@ def open_source(path: Path, device: str = "cpu") -> ViewSource:
     """A run folder (its scene, model and mesh) or a dataset; either is refused with one line when unreadable."""
     from nerfpipe.data_adapters import load
 
-    from nerfpipe.pixel_sampler import background_colors
-    from nerfpipe.runs import load_run
-    from nerfpipe.trainer import backgrounds
+    from nerfpipe.novel_views import RenderConfig, background
+    from nerfpipe.runs import find_run, load_run
     from nerfpipe.viewer.content import find_mesh
 
     path = Path(path)
-    run = trained_folder(path) if path.is_dir() else None
+    run = find_run(path) if path.is_dir() else None
     if run is None:
         return ViewSource(load(path), None, None, None)
     scene, model, cfg = load_run(run, device)
-    bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
+    bg = background(RenderConfig(), cfg, scene)  # the run's evaluation background, as nerfpipe render's default
     return ViewSource(scene, model_renderer(model, bg, device), run, find_mesh([run, path]), model)
