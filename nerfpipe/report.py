@@ -4,8 +4,11 @@ The page reads whatever the stages left in the run folder and never fails on a m
 unreadable artifact: such an artifact is shown as "not produced" and listed at the end.
 
 Sections: key figures, scene and convention check, training metrics and PSNR curves, novel views
-(orbit and depth GIFs), speed against error (a ``nerfpipe bench`` table), mesh, cameras, stage
-timings. Images are embedded as base64 ``data:`` URIs so the file can be moved or mailed; an
+(orbit and depth GIFs), speed against error (a ``nerfpipe bench`` table), mesh, cameras, other
+outputs, stage timings. The files come from what each stage declares it shows
+(``StageSpec.shows``, :mod:`nerfpipe.report_items`): the sections ask for roles (``colour``,
+``metrics``...), never for a stage's file names, and a declared item no section asks for goes to
+"Other outputs". Images are embedded as base64 ``data:`` URIs so the file can be moved or mailed; an
 image larger than ``max_embed_mb`` is linked by its path relative to the report instead. No
 external resources (fonts, scripts, CDNs) are used.
 
@@ -24,26 +27,14 @@ from pathlib import Path
 
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.paths import resolve_inside
+from nerfpipe.report_items import Shown, declared
 
 REPORT_FILE = "report.html"
 
-# Where each artifact may be, first match wins (globs relative to the run folder).
-SCENE_JSON = ("scene.json",)
-CHECK_JSON = ("check.json", "check.failed.json")
-TRAIN_METRICS = ("train/metrics.json", "metrics.json")
-PSNR_PNG = ("train/psnr.png", "psnr.png")
-PROGRESS_PNG = ("train/progress.png", "progress.png")
-CAMERAS_PNG = ("train/cameras.png", "cameras.png")
-RENDER_JSON = ("render/orbit.json", "render/test.json")
-ORBIT_GIF = ("render/orbit.gif", "render/test.gif", "train/orbit.gif", "orbit.gif")
-DEPTH_GIF = ("render/depth_orbit.gif", "render/depth_test.gif", "train/depth_orbit.gif", "depth_orbit.gif")
-ORBIT_MP4 = ("render/orbit.mp4", "render/test.mp4", "train/orbit.mp4", "orbit.mp4")
-MESH_JSON = ("mesh/mesh.json", "mesh.json", "*/mesh.json")
-MESH_VIEWS = ("mesh/mesh_views.png", "mesh_views.png", "*/mesh_views.png")
-MESH_EVAL = ("mesh/mesh_metrics.json", "mesh_metrics.json")  # written by the mesh stage
+# A ``nerfpipe bench`` folder (not a stage's output: ``ReportConfig.bench_dir`` or ``bench/``).
 BENCH_JSON = ("table.json",)
 BENCH_MD = ("table.md",)
-BENCH_PNG = ("psnr_vs_seconds.png",)
+BENCH_PNG = Shown("bench_curves", "image", ("psnr_vs_seconds.png",), "val PSNR against training seconds")
 
 # Labels (and units) of the figures the stages write; other keys are shown under their own name.
 LABELS = {
@@ -91,6 +82,30 @@ class Page:
     out_dir: "Path | None" = None
     """Folder the report is written to (relative links start here); default: the run folder."""
     missing: "list[str]" = field(default_factory=list)
+    items: "dict[str, Shown] | None" = None
+    """What the stages declare they show (default: every registered stage's ``shows``)."""
+    used: "set[str]" = field(default_factory=set)
+    """The roles the sections asked for; ``undeclared``: those no stage declares."""
+    undeclared: "list[str]" = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.items is None:
+            from nerfpipe.stages import stages
+
+            self.items = declared(stages().values())
+
+    def item(self, role: str) -> Shown:
+        """The declaration of ``role`` (one with no files, recorded in ``undeclared``, when no stage declares it)."""
+        self.used.add(role)
+        if role not in self.items:
+            self.undeclared.append(role)
+            return Shown(role, "table", (), role)
+        return self.items[role]
+
+    def first(self, *roles: str) -> Shown:
+        """The first of ``roles`` whose file exists (else the first), e.g. the render stage's GIF, else the training's."""
+        items = [self.item(r) for r in roles]
+        return next((i for i in items if self.find(i.candidates()) is not None), items[0])
 
     def find(self, candidates: "tuple[str, ...]", root: "Path | None" = None) -> "Path | None":
         """First existing file among the candidate globs (relative to ``root``, default the run folder)."""
@@ -110,12 +125,13 @@ class Page:
             return False
         return True
 
-    def json(self, candidates: "tuple[str, ...]", what: str, root: "Path | None" = None) -> "dict | None":
-        """The first candidate's JSON object; None (recorded as missing) when absent or unreadable."""
-        path = self.find(candidates, root)
+    def json(self, role: str) -> "dict | None":
+        """The JSON object of ``role``'s file; None (recorded as missing) when absent or unreadable."""
+        item = self.item(role)
+        path = self.find(item.candidates())
         data = read_json(path) if path is not None else None
         if data is None:
-            self.missing.append(f"{what} ({candidates[0]}{'' if path is None else ': unreadable'})")
+            self.missing.append(f"{item.title} ({(item.files or (role,))[0]}{'' if path is None else ': unreadable'})")
         return data
 
 
@@ -197,11 +213,11 @@ def image_src(path: Path, page: Page) -> "tuple[str, bool]":
     return Path(rel).as_posix(), False
 
 
-def figure(page: Page, candidates: "tuple[str, ...]", what: str, caption: str = "", cls: str = "", root: "Path | None" = None) -> str:
-    """An ``<figure>`` with the first candidate image, or a "not produced" note (recorded as missing)."""
-    path = page.find(candidates, root)
+def figure(page: Page, item: Shown, caption: str = "", cls: str = "", root: "Path | None" = None) -> str:
+    """An ``<figure>`` with the item's image, or a "not produced" note (recorded as missing)."""
+    path, what = page.find(item.candidates(), root), item.title
     if path is None:
-        page.missing.append(f"{what} ({candidates[0]})")
+        page.missing.append(f"{what} ({(item.files or (item.role,))[0]})")
         return not_produced(what)
     src, embedded = image_src(path, page)
     rel = path.relative_to(root or page.run_dir).as_posix()
@@ -273,13 +289,13 @@ def training_section(page: Page, metrics: "dict | None") -> str:
     else:
         flat = {k: v for k, v in metrics.items() if not isinstance(v, dict) and k != "depth_colormap"}
         body = kv_columns(flat)
-    curves = figure(page, PSNR_PNG, "PSNR curves", "train (per batch) and validation PSNR against iterations and seconds", "wide")
-    progress = figure(page, PROGRESS_PNG, "validation view during training", cls="wide")
+    curves = figure(page, page.item("psnr_curves"), "train (per batch) and validation PSNR against iterations and seconds", "wide")
+    progress = figure(page, page.item("progress"), cls="wide")
     return section("training", "Training", f"<h3>Metrics</h3>{body}{curves}{progress}")
 
 
-def _link(page: Page, candidates: "tuple[str, ...]", text: str) -> str:
-    path = page.find(candidates)
+def _link(page: Page, item: Shown) -> str:
+    path, text = page.find(item.candidates()), item.title
     if path is None:
         return ""
     rel = os.path.relpath(path.resolve(), (page.out_dir or page.run_dir).resolve())
@@ -287,13 +303,13 @@ def _link(page: Page, candidates: "tuple[str, ...]", text: str) -> str:
 
 
 def views_section(page: Page) -> str:
-    info = read_json(p) if (p := page.find(RENDER_JSON)) is not None else None
+    info = read_json(p) if (p := page.find(page.item("views_info").candidates())) is not None else None
     info = info or {}
     size = info.get("size")
     caption = f"{info['frames']} frames of {size[0]}×{size[1]}" if "frames" in info and isinstance(size, list) else ""
-    colour = figure(page, ORBIT_GIF, "orbit (colour)", caption, "gif")
-    depth = figure(page, DEPTH_GIF, "orbit (depth)", info.get("depth_mapping", ""), "gif")
-    mp4 = _link(page, ORBIT_MP4, "orbit video (MP4)")
+    colour = figure(page, page.first("colour", "train_colour"), caption, "gif")
+    depth = figure(page, page.first("depth", "train_depth"), info.get("depth_mapping", ""), "gif")
+    mp4 = _link(page, page.first("video", "train_video"))
     return section("views", "Novel views", f'<div class="row">{colour}{depth}</div>{mp4}')
 
 
@@ -326,18 +342,19 @@ def history_table(rows: "list[dict]") -> str:
 def bench_section(page: Page) -> str:
     root = Path(page.config.bench_dir) if page.config.bench_dir else page.run_dir / "bench"
     doc = read_json(p) if (p := page.find(BENCH_JSON, root)) is not None else None
+    history = page.item("history")
     if doc is not None and isinstance(doc.get("rows"), list):
         rows = [r for r in doc["rows"] if isinstance(r, dict)]
         body = f"<p>scene: {esc(doc.get('scene', '?'))}; best val PSNR per budget in bold</p>" + bench_table(rows)
     elif (md := page.find(BENCH_MD, root)) is not None:
         body = f"<pre>{esc(md.read_text())}</pre>"
-    elif (hist := page.find(("train/history.json", "history.json"))) is not None and (rows := (read_json(hist) or {}).get("val")):
+    elif (hist := page.find(history.candidates())) is not None and (rows := (read_json(hist) or {}).get("val")):
         body = ("<p>this run's validations against training seconds (run <code>nerfpipe bench PATH</code> "
                 "and put its folder in <code>bench/</code> to compare presets)</p>" + history_table(rows))
     else:
         page.missing.append(f"speed-against-error table ({root.name}/table.json)")
         body = not_produced("speed-against-error table (nerfpipe bench: table.json)")
-    body += figure(page, BENCH_PNG, "val PSNR against training seconds", cls="wide", root=root) if root.is_dir() else ""
+    body += figure(page, BENCH_PNG, cls="wide", root=root) if root.is_dir() else ""
     return section("bench", "Speed against error", body)
 
 
@@ -352,12 +369,28 @@ def mesh_section(page: Page, mesh: "dict | None", evaluation: "dict | None") -> 
     left = kv_table(mesh, MESH_KEYS) if mesh is not None else not_produced("mesh figures (mesh.json)")
     if evaluation is not None:
         left += "<h3>Against the reference</h3>" + kv_table(evaluation, MESH_EVAL_KEYS)
-    views = figure(page, MESH_VIEWS, "mesh from four views")
+    views = figure(page, page.item("mesh_views"))
     return section("mesh", "Mesh", f'<div class="cols"><div>{left}</div><div>{views}</div></div>')
 
 
 def cameras_section(page: Page) -> str:
-    return section("cameras", "Cameras", figure(page, CAMERAS_PNG, "training cameras, rays and samples", cls="square"))
+    return section("cameras", "Cameras", figure(page, page.item("cameras"), cls="square"))
+
+
+def others_section(page: Page) -> str:
+    """The declared items no section asked for (a third-party stage's pictures, tables, videos) that exist."""
+    parts = []
+    for role, item in page.items.items():
+        if role in page.used or page.find(item.candidates()) is None:
+            continue
+        if item.kind == "image":
+            parts.append(figure(page, item, cls="wide"))
+        elif item.kind == "video":
+            parts.append(_link(page, item))
+        else:
+            data = read_json(page.find(item.candidates())) or {}
+            parts.append(f"<h3>{esc(item.title)}</h3>" + kv_table({k: v for k, v in data.items() if not isinstance(v, dict)}))
+    return section("others", "Other outputs", "".join(parts)) if parts else ""
 
 
 def stage_markers(run_dir: Path, chain: "list[str]") -> "list[dict]":
@@ -408,7 +441,7 @@ def default_title(source: object, run_dir: Path) -> str:
 
 def mesh_evaluation(page: Page, mesh: "dict | None") -> "dict | None":
     """Geometry metrics against a reference: a metrics file of the mesh stage, or mesh.json itself."""
-    path = page.find(MESH_EVAL)
+    path = page.find(page.item("mesh_evaluation").candidates())
     data = read_json(path) if path is not None else None
     if data is None and mesh is not None and "fscore" in mesh:
         data = mesh
@@ -427,10 +460,10 @@ def guarded(page: Page, anchor: str, what: str, build) -> str:
 def build_html(page: Page) -> str:
     """The whole page for ``page.run_dir``; missing artifacts end up in ``page.missing``."""
     run = read_json(page.run_dir / "run.json") or {}
-    scene = page.json(SCENE_JSON, "scene summary")
-    check = page.json(CHECK_JSON, "convention check")
-    metrics = page.json(TRAIN_METRICS, "training metrics")
-    mesh = page.json(MESH_JSON, "mesh figures")
+    scene = page.json("scene")
+    check = page.json("check")
+    metrics = page.json("metrics")
+    mesh = page.json("mesh")
     evaluation = mesh_evaluation(page, mesh)
     source = run.get("source") or (scene or {}).get("input")
     title = page.config.title or default_title(source, page.run_dir)
@@ -443,6 +476,7 @@ def build_html(page: Page) -> str:
         guarded(page, "bench", "speed against error", lambda: bench_section(page)),
         guarded(page, "mesh", "mesh", lambda: mesh_section(page, mesh, evaluation)),
         guarded(page, "cameras", "cameras", lambda: cameras_section(page)),
+        guarded(page, "others", "other outputs", lambda: others_section(page)),
         guarded(page, "timings", "stage timings", lambda: timings_section(stage_markers(page.run_dir, chain))),
     ]
     body.append(missing_section(page.missing))

@@ -92,6 +92,8 @@ class StageSpec:
     dependencies: "tuple[tuple[str, str], ...]" = ()
     """Optional modules ``(module, extra)`` the stage needs; :meth:`Pipeline.run` imports those of every
     stage of the chain before running any, so a missing one never costs the earlier stages' work."""
+    shows: "tuple[Any, ...]" = ()
+    """What the stage shows in report.html (:class:`nerfpipe.report_items.Shown`: file, kind, title)."""
     collective: bool = False
     """Under torchrun, every process runs the stage together (``train``: data-parallel); the others run
     on rank 0 alone. A collective stage writes only from rank 0 (:class:`nerfpipe.distributed.World`)."""

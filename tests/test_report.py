@@ -264,3 +264,75 @@ def test_a_figure_linked_out_of_the_run_folder_is_not_embedded(full_run, tmp_pat
     page = _run_report(full_run)
     assert base64.b64encode(secret.read_bytes()).decode("ascii")[:200] not in page
     assert "not embedded" in page and "cameras.png" in page
+
+
+# ---------------------------------------------------------------- the report from the stages' declarations
+
+
+def _views(page_html: str) -> str:
+    return page_html[page_html.index('id="views"') : page_html.index('id="bench"')]
+
+
+def test_renaming_an_artifact_in_a_stage_declaration_moves_it_in_the_report(tmp_path):
+    """The report names no stage's files: rename the render stage's colour GIF in its declaration and the
+    novel-views section shows the renamed file (and no longer the old name, though it is on disk)."""
+    from dataclasses import replace
+
+    from nerfpipe.report import Page, build_html
+    from nerfpipe.report_items import Shown, declared
+    from nerfpipe.video import write_gif
+
+    run = tmp_path / "run"
+    write_gif([_pattern(24, 20, 0)] * 2, run / "render" / "orbit.gif", 10.0)
+    write_gif([_pattern(24, 20, 5)] * 2, run / "render" / "spin.gif", 10.0)
+    specs = dict(stages())
+    assert "render/orbit.gif" in _views(build_html(Page(run, items=declared(specs.values()))))
+    render = specs["render"]
+    shows = tuple(replace(s, files=("render/spin.gif",), title="spin (colour)") if s.role == "colour" else s for s in render.shows)
+    specs["render"] = replace(render, shows=shows)
+    views = _views(build_html(Page(run, items=declared(specs.values()))))
+    spin = base64.b64encode((run / "render" / "spin.gif").read_bytes()).decode()
+    assert "render/spin.gif" in views and "spin (colour)" in views and spin in views
+    assert "render/orbit.gif" not in views
+    specs["render"] = replace(render, shows=shows + (Shown("colour", "image", ("render/x.gif",), "x"),))
+    with pytest.raises(ValueError, match="'colour' declared by both 'render' and 'render'"):
+        declared(specs.values())
+
+
+def test_every_section_reads_a_declared_artifact_of_a_stage(tmp_path):
+    """No section asks for a role no stage declares, every built-in declaration is read by a section, and
+    every declared file lies in what its stage produces; report.py itself names no stage's file."""
+    from nerfpipe.report import Page, build_html
+    from nerfpipe.report_items import declared, outside_produces
+
+    specs = dict(stages())
+    page = Page(tmp_path, items=declared(specs.values()))
+    build_html(page)
+    assert page.undeclared == []
+    assert set(page.items) <= page.used
+    assert {name: outside_produces(spec) for name, spec in specs.items() if outside_produces(spec)} == {}
+    source = Path(__import__("nerfpipe.report", fromlist=["x"]).__file__).read_text()
+    for spec in specs.values():
+        for item in spec.shows:
+            for f in item.files:
+                assert f'"{f}"' not in source and f'"{Path(f).name}"' not in source, f
+
+
+def test_a_declared_item_no_section_reads_goes_to_other_outputs(tmp_path):
+    """A third-party stage shows a picture and a table by declaring them; nothing in the report changes."""
+    from dataclasses import replace
+
+    import imageio.v3 as iio
+
+    from nerfpipe.report import Page, build_html
+    from nerfpipe.report_items import Shown, declared
+
+    specs = dict(stages())
+    specs["extra"] = replace(specs["check"], name="extra", produces=("extra/out.json",), shows=(
+        Shown("extra_image", "image", ("extra/heat.png",), "heat map"), Shown("extra_table", "table", ("extra/out.json",), "extra figures")))
+    (tmp_path / "extra").mkdir()
+    iio.imwrite(tmp_path / "extra" / "heat.png", _pattern(30, 20, 3))
+    _write_json(tmp_path / "extra" / "out.json", {"holes": 3})
+    page_html = build_html(Page(tmp_path, items=declared(specs.values())))
+    others = page_html[page_html.index('id="others"') : page_html.index('id="timings"')]
+    assert "heat map" in others and "extra/heat.png" in others and "<th>holes</th><td>3</td>" in others

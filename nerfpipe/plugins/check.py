@@ -9,6 +9,7 @@ import json
 from dataclasses import dataclass
 
 from nerfpipe.errors import NerfpipeError
+from nerfpipe.report_items import Shown
 from nerfpipe.stages import StageContext, StageSpec, write_json
 
 CHECK_JSON = "check.json"
@@ -50,6 +51,7 @@ STAGE = StageSpec(
     run=run,
     requires=("scene",),
     produces=(CHECK_JSON,),
+    shows=(Shown("check", "table", (CHECK_JSON, "check.failed.json"), "convention check"),),
     provides=("check",),
     restore=restore,
     dependencies=(("kornia", "kornia"),),

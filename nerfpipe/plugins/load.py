@@ -21,6 +21,7 @@ import numpy as np
 from nerfpipe.errors import NerfpipeError
 from nerfpipe.image_file import image_uint8
 from nerfpipe.paths import resolve_inside
+from nerfpipe.report_items import Shown
 from nerfpipe.scene import SceneData, check_images
 from nerfpipe.stages import StageContext, StageSpec, atomic_path, write_json
 
@@ -130,6 +131,7 @@ STAGE = StageSpec(
     config=LoadConfig,
     run=run,
     produces=(SCENE_JSON,),
+    shows=(Shown("scene", "table", (SCENE_JSON,), "scene summary"),),
     provides=("scene",),
     restore=restore,
 )

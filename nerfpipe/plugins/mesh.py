@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig
 from nerfpipe.mesh.trained import RenderedViews
+from nerfpipe.report_items import Shown
 from nerfpipe.stages import StageContext, StageSpec, atomic_path
 
 MESH_DIR = "mesh"
@@ -103,5 +104,7 @@ STAGE = StageSpec(
     run=run,
     requires=("scene", "model"),
     produces=(MESH_PLY, MESH_JSON),
+    shows=(Shown("mesh", "table", (MESH_JSON,), "mesh figures"), Shown("mesh_views", "image", (f"{MESH_DIR}/mesh_views.png",), "mesh from four views"),
+           Shown("mesh_evaluation", "table", (f"{MESH_DIR}/{METRICS_FILE}",), "mesh against the reference")),
     dependencies=MESH_DEPENDENCIES,
 )

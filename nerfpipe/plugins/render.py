@@ -12,8 +12,17 @@ memory (``views``).
 import json
 
 from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
-from nerfpipe.novel_views import RENDER_DIR, RenderConfig, frame_size, plan_frames  # noqa: F401 (this stage's API)
+from nerfpipe.novel_views import PATHS, RENDER_DIR, RenderConfig, frame_size, plan_frames  # noqa: F401 (this stage's API)
+from nerfpipe.report_items import Shown
 from nerfpipe.stages import StageContext, StageSpec
+
+SHOWS = (
+    Shown("views_info", "table", tuple(f"{RENDER_DIR}/{p}.json" for p in PATHS), "novel views"),
+    Shown("colour", "image", tuple(f"{RENDER_DIR}/{p}.gif" for p in PATHS), "orbit (colour)"),
+    Shown("depth", "image", tuple(f"{RENDER_DIR}/depth_{p}.gif" for p in PATHS), "orbit (depth)"),
+    Shown("video", "video", tuple(f"{RENDER_DIR}/{p}.mp4" for p in PATHS), "orbit video (MP4)"),
+)
+"""The report's novel-views section: the orbit (or test path) GIFs, its video and its JSON."""
 
 
 def run(config: RenderConfig, ctx: StageContext) -> "dict[str, object]":
@@ -38,5 +47,6 @@ STAGE = StageSpec(
     requires=("scene", "model"),
     produces=(RENDER_DIR,),
     provides=("views",),
+    shows=SHOWS,
     dependencies=SEQUENCE_DEPENDENCIES,
 )

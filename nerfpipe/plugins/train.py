@@ -23,6 +23,7 @@ from pathlib import Path
 from nerfpipe import checkpoint, evaluation
 from nerfpipe.configs import JsonTable
 from nerfpipe.errors import NerfpipeError, refuse_unless
+from nerfpipe.report_items import Shown
 from nerfpipe.stages import StageContext, StageSpec
 from nerfpipe.trainer import TrainerConfig
 
@@ -130,4 +131,9 @@ STAGE = StageSpec(
     restore=restore,
     dependencies=evaluation.dependencies(TrainStageConfig().trainer),
     collective=True,
+    shows=tuple(Shown(role, kind, (f"{TRAIN_DIR}/{name}",), title) for role, kind, name, title in (
+        ("metrics", "table", "metrics.json", "training metrics"), ("history", "table", "history.json", "validation history"),
+        ("psnr_curves", "image", "psnr.png", "PSNR curves"), ("progress", "image", "progress.png", "validation view during training"),
+        ("cameras", "image", "cameras.png", "training cameras, rays and samples"), ("train_colour", "image", "orbit.gif", "orbit (colour)"),
+        ("train_depth", "image", "depth_orbit.gif", "orbit (depth)"), ("train_video", "video", "orbit.mp4", "orbit video (MP4)"))),
 )
