@@ -38,6 +38,28 @@ def test_wheel_installs_only_the_nerfpipe_package(tmp_path):
     targets = [line.split("=", 1)[1].strip() for line in entry_points.splitlines() if "=" in line]
     assert len(targets) >= 12 and all(t.startswith("nerfpipe.") for t in targets), targets
 
+    core = [line.split(":", 1)[1].strip() for line in (dist_info / "METADATA").read_text().splitlines()
+            if line.startswith("Requires-Dist:") and "extra ==" not in line]  # fmt: skip
+    assert _missing_from_core(core) == []
+
+
+def _missing_from_core(core: "list[str]") -> "list[str]":
+    """The optional modules a default ``nerfpipe train`` (and the MP4 of ``nerfpipe render``) imports that no
+    core requirement installs: a core install must be able to train."""
+    from nerfpipe import evaluation
+    from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
+    from nerfpipe.trainer import TrainerConfig
+
+    provides = {"imageio_ffmpeg": "imageio[ffmpeg]"}  # module -> the requirement that installs it
+    needed = {module for module, _ in evaluation.dependencies(TrainerConfig()) + SEQUENCE_DEPENDENCIES}
+    names = {req.split(">")[0].split("=")[0].split("<")[0].strip().lower().replace(" ", "") for req in core}
+    return sorted(m for m in needed if provides.get(m, m).lower() not in names)
+
+
+def test_a_core_install_without_kornia_would_be_caught():
+    assert _missing_from_core(["torch>=2.4", "imageio[ffmpeg]>=2.34", "matplotlib>=3.8"]) == ["kornia"]
+    assert _missing_from_core(["torch>=2.4", "imageio>=2.34", "kornia>=0.8", "matplotlib>=3.8"]) == ["imageio_ffmpeg"]
+
 
 def test_installed_entry_points_are_namespaced():
     for group in (STAGE_GROUP, ADAPTER_GROUP, MODEL_GROUP):
