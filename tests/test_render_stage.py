@@ -59,6 +59,7 @@ def test_the_command_and_the_stage_render_the_same_files(scene_path, tmp_path, c
     staged = tmp_path / "staged"
     shutil.copytree(tmp_path / "render", staged)
     (tmp_path / "render" / "orbit.gif").write_text("another path's render")  # must stay
+    capsys.readouterr()  # what the pipeline logged: stdout is the command's JSON from here
     assert main(["render", str(tmp_path), "--path", "test", "--frames", "3", "--scale", "0.1", "--pngs", "--background", "white", "--device", "cpu"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert sorted(p.name for p in (tmp_path / "render").iterdir()) == sorted(["orbit.gif", *(p.name for p in staged.iterdir())])
