@@ -242,6 +242,7 @@ def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, 
 def _video(trainer, metrics: dict, plan: dict) -> None:
     """Orbit/test-path videos: ``video_frames`` at ``video_scale``, or under a budget what fits the time left."""
     from nerfpipe.artifacts import write_sequence
+    from nerfpipe.novel_views import RenderConfig, render_sequence
     from nerfpipe.orbit import path_cameras
 
     cfg = trainer.cfg
@@ -256,10 +257,10 @@ def _video(trainer, metrics: dict, plan: dict) -> None:
         if fit.frames < min(MIN_VIDEO_FRAMES, cfg.video_frames):  # a shorter orbit shows nothing: none at all
             plan["video"]["skipped"] = "no time left in the budget"
             return
-        cams = path_cameras(trainer.scene, "test", fit.frames)
+    frames = len(cams) if left is None else fit.frames
     start = time.perf_counter()
-    bg = background_colors(trainer.eval_bg, 1)[0]
-    views = render_cameras(trainer.model, resize_cameras(cams, w, h).to(cfg.device), cfg.chunk, bg)
+    bg = background_colors(trainer.eval_bg, 1)[0]  # the one renderer of camera paths (nerfpipe render, the render stage)
+    views, _ = render_sequence(trainer.model, trainer.scene, RenderConfig("test", frames, size=f"{w}x{h}", chunk=cfg.chunk), bg, cfg.device)
     metrics["video"] = write_sequence(views, trainer.out, "orbit", depth=True)
     if "video" in plan:
         plan["video"]["seconds"] = time.perf_counter() - start
