@@ -219,3 +219,81 @@ def test_background_distortion_matches_the_pairwise_formula():
     torch.testing.assert_close(out.distortion.detach(), ref, rtol=1e-4, atol=1e-6)
     field.eval()
     assert field(*args).distortion is None
+
+
+def test_outer_weight_loss_matches_the_overlap_reference_and_trains_only_the_coarse_weights():
+    from nerfpipe.fields.background import _outer_weight_loss_reference, outer_weight_loss
+
+    g = torch.Generator().manual_seed(3)
+    edges = torch.rand(4, 7, generator=g).sort(-1).values
+    edges[0] = torch.tensor([0.0, 0.1, 0.25, 0.5, 0.5, 0.9, 1.0])  # edges on coarse boundaries, an empty interval
+    fine = torch.rand(4, 6, generator=g).requires_grad_()
+    coarse = (torch.rand(4, 4, generator=g) * 0.3).requires_grad_()
+    loss = outer_weight_loss(edges, fine, coarse)
+    ref = _outer_weight_loss_reference(edges, fine, coarse)
+    torch.testing.assert_close(loss, ref)
+    (g1,) = torch.autograd.grad(loss.sum(), coarse)
+    (g2,) = torch.autograd.grad(ref.sum(), coarse)
+    torch.testing.assert_close(g1, g2)
+    assert float(loss.detach().sum()) > 0
+    assert torch.autograd.grad(outer_weight_loss(edges, fine, coarse).sum(), fine, allow_unused=True)[0] is None
+    # coarse weights of 1 everywhere bound any fine weights (an empty interval has none): no loss
+    small = fine.detach() / 10
+    small[0, 3] = 0.0
+    assert float(outer_weight_loss(edges, small, torch.ones(4, 4)).abs().max()) == 0.0
+
+
+def test_background_field_with_a_fine_field_learns_a_wall_behind_the_box():
+    """With a proposal (the coarse density) and a fine field, the wall at z = -6 is learned; the
+    proposal loss falls as the coarse weights learn to bound the fine ones."""
+    torch.manual_seed(0)
+    cfg = BackgroundFieldConfig(levels=(8,), num_samples=16, fine_levels=(16, 64), fine_samples=16, fine_log2_rows=12)
+    field = BackgroundField(cfg, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    assert field.fine_density_grid.hash_rows == [None, 1 << 12]  # the 64^3 level is hashed
+    from nerfpipe.fields.fast_field import direction_encoding
+    from nerfpipe.estimators.occupancy import ray_aabb_intersect
+
+    opt = torch.optim.Adam([{"params": field.grid_parameters(), "lr": 0.5}, {"params": field.mlp.parameters(), "lr": 1e-2}])
+    target = torch.tensor([0.9, 0.2, 0.1])
+    proposals = []
+    for step in range(150):
+        rays = _rays(512, step)
+        t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
+        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(512, 3))
+        loss = ((out.rgb - target) ** 2).mean() + out.proposal.mean()
+        proposals.append(float(out.proposal.mean()))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    field.eval()
+    rays = _rays(256, 999)
+    t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
+    with torch.no_grad():
+        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(256, 3))
+    assert out.proposal is None  # evaluation: no losses
+    assert float((out.rgb - target).abs().max()) < 0.05
+    assert float(out.acc.mean()) > 0.95
+    assert sum(proposals[-10:]) < 0.5 * max(proposals)
+
+
+def test_the_colour_behind_the_box_is_computed_only_for_rays_that_show_it():
+    """Rays the box hides (transmittance at most BEHIND_SEEN) keep the given background; the others get
+    exactly what the field behind the box renders for them alone."""
+    from nerfpipe.fields.fast_field import direction_encoding
+    from nerfpipe.models.fast import BEHIND_SEEN
+
+    model = _model()
+    model.eval()
+    with torch.no_grad():
+        model.behind.density_grid.tables[0].normal_(generator=torch.Generator().manual_seed(1))
+    rays = _rays(4, 5)
+    code = direction_encoding(rays.directions)
+    t_exit = model._behind_start(rays)
+    bg = torch.full((4, 3), 0.25)
+    acc = torch.tensor([1.0, 1.0 - BEHIND_SEEN / 2, 0.5, 0.0])
+    with torch.no_grad():
+        got = model._behind(rays, code, t_exit, bg, acc, {})
+        full = model.behind(rays.origins, rays.directions, code, t_exit, bg).rgb
+    torch.testing.assert_close(got[:2], bg[:2])
+    torch.testing.assert_close(got[2:], full[2:])
+    assert float((full[2:] - bg[2:]).abs().max()) > 0.01  # the field behind the box does show there

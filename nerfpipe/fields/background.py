@@ -21,6 +21,7 @@ from torch import nn
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear_corners
 from nerfpipe.functional.contraction import contract, disparity_samples, to_box_coordinates
 from nerfpipe.functional.packed import distortion_loss_packed
+from nerfpipe.functional.sampling import pdf_samples
 from nerfpipe.functional.volrend import render_weights
 from nerfpipe.typing import Float, Tensor
 
@@ -51,6 +52,18 @@ class BackgroundFieldConfig:
     """Weight of mip-NeRF 360's distortion loss on its samples (in their disparity-uniform coordinate):
     the opacity along each ray gathers at one depth, so what the photographs share is put at one place
     instead of painted at each view's own depth (0: off)."""
+    fine_levels: "tuple[int, ...]" = ()
+    """Vertices per axis of a finer field (density and colour, hashed where larger than
+    ``2**fine_log2_rows`` rows) read at ``fine_samples`` samples drawn from the weights of the coarse
+    density (a proposal, as in mip-NeRF 360 and nerfacto): the fine field renders, the coarse density
+    only learns where to sample (its weights must bound the fine ones: :func:`outer_weight_loss`).
+    Empty: the coarse grids render, density and colour."""
+    fine_samples: int = 32
+    """Samples per ray of the fine field."""
+    fine_log2_rows: int = 17
+    """Rows of each hashed fine level, as a power of two."""
+    proposal_weight: float = 1.0
+    """Weight of the loss that makes the coarse weights bound the fine ones (fine field only)."""
     init_density: float = 0.01
     """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
     to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and
@@ -69,6 +82,40 @@ class BehindBox:
     """Expected distance ``sum w_i t_i`` of the background field's samples."""
     distortion: "Float[Tensor, 'num_rays'] | None" = None
     """Distortion loss per ray, in training when ``distortion_weight`` is set."""
+    proposal: "Float[Tensor, 'num_rays'] | None" = None
+    """Proposal loss per ray (:func:`outer_weight_loss`), in training with a fine field."""
+
+
+def outer_weight_loss(
+    edges: Float[Tensor, "num_rays num_fine_edges"], weights: Float[Tensor, "num_rays num_fine"], coarse: Float[Tensor, "num_rays num_coarse"]
+) -> Float[Tensor, "num_rays"]:
+    """mip-NeRF 360's proposal loss: how much the fine ``weights`` exceed the coarse weights' bound.
+
+    The coarse intervals tile ``[0, 1]`` evenly (``num_coarse`` of them); the fine intervals have the
+    sorted ``edges`` in ``[0, 1]``. The bound of a fine interval is the sum of the coarse weights of every
+    coarse interval it overlaps; the loss per ray is ``sum max(0, w - bound)^2 / w`` over the fine
+    intervals, with the fine weights detached (only the coarse density learns from it).
+    """
+    s = coarse.shape[-1]
+    cdf = torch.cat([torch.zeros_like(coarse[:, :1]), coarse.cumsum(-1)], dim=-1)
+    lo = (edges[:, :-1] * s).floor().long().clamp(0, s)
+    hi = (edges[:, 1:] * s).ceil().long().clamp(0, s)
+    bound = cdf.gather(1, hi) - cdf.gather(1, lo)
+    w = weights.detach()
+    return ((w - bound).clamp(min=0) ** 2 / (w + 1e-7)).sum(-1)
+
+
+def _outer_weight_loss_reference(edges, weights, coarse) -> Tensor:
+    """Slow reference of :func:`outer_weight_loss`: interval overlaps tested one pair at a time."""
+    s = coarse.shape[-1]
+    out = []
+    for e, w, c in zip(edges.tolist(), weights.detach().tolist(), coarse):
+        total = coarse.new_zeros(())
+        for i, wi in enumerate(w):
+            bound = sum((c[j] for j in range(s) if j / s < e[i + 1] and (j + 1) / s > e[i]), coarse.new_zeros(()))
+            total = total + (wi - bound).clamp(min=0) ** 2 / (wi + 1e-7)
+        out.append(total)
+    return torch.stack(out)
 
 
 class BackgroundField(nn.Module):
@@ -85,19 +132,31 @@ class BackgroundField(nn.Module):
         self.register_buffer("aabb", aabb.detach().clone().float())
         resolutions = [(n, n, n) for n in cfg.levels]
         self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
-        self.feature_grid = DenseGridEncoding(resolutions, cfg.feature_channels)
+        self.fine = bool(cfg.fine_levels)
+        if self.fine:  # the coarse grid only proposes; the fine grids render
+            fine = [(n, n, n) for n in cfg.fine_levels]
+            self.fine_density_grid = DenseGridEncoding(fine, 1, init_scale=0.0, max_rows=1 << cfg.fine_log2_rows)
+            self.feature_grid = DenseGridEncoding(fine, cfg.feature_channels, max_rows=1 << cfg.fine_log2_rows)
+        else:
+            self.feature_grid = DenseGridEncoding(resolutions, cfg.feature_channels)
         self.shift = math.log(math.expm1(cfg.init_density))
         self.mlp = nn.Sequential(
             nn.Linear(self.feature_grid.out_dim + (16 if cfg.view_dependent else 0), cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
         )
 
+    def grid_parameters(self) -> "list[nn.Parameter]":
+        """The grids' tables (their own learning rate)."""
+        grids = [self.density_grid, self.feature_grid] + ([self.fine_density_grid] if self.fine else [])
+        return [p for g in grids for p in g.parameters()]
+
     @property
     def t_far(self) -> float:
         return self.cfg.far_factor * float((self.aabb[1] - self.aabb[0]).norm())
 
-    def _corners(self, points: Float[Tensor, "num_points 3"]) -> list:
+    def _corners(self, points: Float[Tensor, "num_points 3"], grid: "DenseGridEncoding | None" = None) -> list:
+        grid = self.density_grid if grid is None else grid
         x01 = 0.25 * (contract(to_box_coordinates(points, self.aabb)) + 2.0)
-        return [trilinear_corners(x01, r) for r in self.density_grid.resolutions]
+        return [grid.corners(level, x01) for level in range(len(grid.resolutions))]
 
     def _contracted_lengths(self, origins, directions, t_start, deltas) -> Float[Tensor, "num_rays num_samples"]:
         """Lengths of the sample intervals in contracted space (chords between their contracted ends)."""
@@ -107,7 +166,9 @@ class BackgroundField(nn.Module):
         return (c[:, 1:] - c[:, :-1]).norm(dim=-1)
 
     def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
-        raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(self.density_grid.tables, self._corners(points)))
+        """The density that renders (the fine field's, when there is one)."""
+        grid = self.fine_density_grid if self.fine else self.density_grid
+        raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(grid.tables, self._corners(points, grid)))
         return nn.functional.softplus(raw[:, 0] + self.shift)
 
     def forward(
@@ -131,19 +192,35 @@ class BackgroundField(nn.Module):
         corners = self._corners(points)
         raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.density_grid.tables, corners))
         sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
+        proposal = None
+        if self.fine:
+            coarse, _ = render_weights(sigma, deltas)
+            edges = pdf_samples(torch.linspace(0.0, 1.0, s + 1, device=origins.device).expand(n, s + 1), coarse.detach(),
+                                self.cfg.fine_samples + 1, perturb=self.training, generator=generator)
+            inv0, inv1 = 1.0 / t_start.clamp(min=1e-6)[:, None], 1.0 / self.t_far
+            t_edges = 1.0 / (inv0 * (1.0 - edges) + inv1 * edges)
+            t = 0.5 * (t_edges[:, 1:] + t_edges[:, :-1])
+            s = self.cfg.fine_samples
+            deltas = self._contracted_lengths(origins, directions, t_edges[:, 0], t_edges[:, 1:] - t_edges[:, :-1])
+            points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
+            corners = self._corners(points, self.fine_density_grid)
+            raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.fine_density_grid.tables, corners))
+            sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
         feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
         if self.cfg.view_dependent:
             feats.append(dir_code.repeat_interleave(s, dim=0))
         h = torch.cat(feats, dim=-1)
         rgbs = torch.sigmoid(self.mlp(h)).view(n, s, 3)
         weights, _ = render_weights(sigma, deltas)
+        if self.fine and self.training:
+            proposal = outer_weight_loss(edges, weights, coarse)
         acc = weights.sum(-1)
         rgb = (weights[..., None] * rgbs).sum(-2) + (1.0 - acc)[:, None] * background
         distortion = None
-        if self.training and self.cfg.distortion_weight > 0:
+        if self.training and self.cfg.distortion_weight > 0 and not self.fine:
             edges = torch.arange(s + 1, device=origins.device, dtype=weights.dtype) / s  # uniform in disparity
             ray_indices = torch.arange(n, device=origins.device).repeat_interleave(s)
             distortion = distortion_loss_packed(
                 weights.reshape(-1), edges[:-1].repeat(n), edges[1:].repeat(n), ray_indices, n
             )
-        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1), distortion=distortion)
+        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1), distortion=distortion, proposal=proposal)

@@ -91,6 +91,11 @@ def compact_capacity(info: SceneInfo) -> dict:
     return dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
 
 
+BEHIND_SEEN = 1e-3
+"""Transmittance of the box below which a ray's colour behind the box is not computed (it changes the
+pixel by less than a thousandth of the colour range)."""
+
+
 @dataclass
 class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
@@ -303,11 +308,6 @@ class FastModel(Model):
             bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
         t_exit = self._behind_start(flat)
         extras = {}
-        if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
-            behind = self.behind(flat.origins, flat.directions, dir_code, t_exit, bg, generator=self.generator)
-            bg = behind.rgb
-            if behind.distortion is not None:
-                extras["behind_distortion"] = behind.distortion.mean()
         samples, sigma = self._samples(flat)
         pts = samples.points(flat.origins, flat.directions)
         corners = self.field.corners(pts)
@@ -316,6 +316,8 @@ class FastModel(Model):
         rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
+        if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
+            bg = self._behind(flat, dir_code, t_exit, bg, accumulate_packed(weights[:, None], samples.ray_indices, len(flat))[:, 0], extras)
         rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
         if self.training and self.appearance is not None:
             rgb = self._corrected(rgb, flat.cam_idx)
@@ -334,6 +336,20 @@ class FastModel(Model):
             rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape), stop_depth=stop,
             num_samples=len(samples), extras=extras,
         )
+
+    def _behind(self, rays: RayBundle, dir_code, t_exit, bg, acc, extras: dict) -> Float[Tensor, "num_rays 3"]:
+        """The colour behind the box for every ray, computed only where the box lets ``BEHIND_SEEN`` of it
+        through (``acc``: the box's opacity); the others keep ``bg``, which they do not show."""
+        seen = ((1.0 - acc.detach()) > BEHIND_SEEN).nonzero()[:, 0]
+        if len(seen) == 0:
+            return bg
+        sub = rays[seen]
+        behind = self.behind(sub.origins, sub.directions, dir_code[seen], t_exit[seen], bg[seen], generator=self.generator)
+        if behind.distortion is not None:
+            extras["behind_distortion"] = behind.distortion.mean()
+        if behind.proposal is not None:
+            extras["behind_proposal"] = behind.proposal.mean()
+        return bg.index_put((seen,), behind.rgb)
 
     def _behind_start(self, rays: RayBundle) -> Float[Tensor, "num_rays"]:
         """Where each ray leaves the object region (rays that miss it: the near bound)."""
@@ -357,6 +373,8 @@ class FastModel(Model):
             losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
         if "behind_distortion" in outputs.extras:
             losses["behind_distortion"] = self.cfg.behind.distortion_weight * outputs.extras["behind_distortion"]
+        if "behind_proposal" in outputs.extras:
+            losses["behind_proposal"] = self.cfg.behind.proposal_weight * outputs.extras["behind_proposal"]
         if self.cfg.tv_weight > 0 and self.training:
             losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16, self.generator)
         return losses
@@ -439,8 +457,7 @@ class FastModel(Model):
         if self.background is not None:
             groups[1]["params"] += list(self.background.parameters())
         if self.behind is not None:
-            behind_grids = list(self.behind.density_grid.parameters()) + list(self.behind.feature_grid.parameters())
-            groups.append({"params": behind_grids, "lr": self.cfg.behind.grid_lr, "eps": 1e-15})
+            groups.append({"params": self.behind.grid_parameters(), "lr": self.cfg.behind.grid_lr, "eps": 1e-15})
             groups[1]["params"] += list(self.behind.mlp.parameters())
         if self.appearance is not None:
             groups.append({"params": [self.appearance], "lr": self.cfg.appearance_lr, "eps": 1e-15})
