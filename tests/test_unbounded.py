@@ -54,29 +54,39 @@ def _rays(n, seed=0):
     return RayBundle(origins=o, directions=d, cam_idx=torch.randint(0, 4, (n,), generator=g), z_scale=torch.ones(n))
 
 
-def test_background_field_learns_a_wall_behind_the_box():
-    """A wall of one colour at z = -6 (behind the box [-1, 1]^3) is learned, and its depth found."""
-    torch.manual_seed(0)
-    field = BackgroundField(BackgroundFieldConfig(levels=(16, 32), num_samples=32), torch.tensor([[-1.0] * 3, [1.0] * 3]))
-    from nerfpipe.fields.fast_field import direction_encoding
+def _fit_wall(field, opt, target, steps: int = 150):
+    """Train ``field`` towards a wall of colour ``target`` behind the box (plus its proposal loss, when it
+    has one); returns its evaluation render of fresh rays and the proposal loss of every step."""
     from nerfpipe.estimators.occupancy import ray_aabb_intersect
+    from nerfpipe.fields.fast_field import direction_encoding
 
-    opt = torch.optim.Adam([{"params": field.density_grid.parameters(), "lr": 0.5}, {"params": field.mlp.parameters(), "lr": 1e-2},
-                            {"params": field.feature_grid.parameters(), "lr": 0.5}])
-    target = torch.tensor([0.9, 0.2, 0.1])
-    for step in range(150):
-        rays = _rays(512, step)
+    def render(rays):
         t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
-        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(512, 3))
+        return field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(len(t_exit), 3))
+
+    proposals = []
+    for step in range(steps):
+        out = render(_rays(512, step))
         loss = ((out.rgb - target) ** 2).mean()
+        if out.proposal is not None:
+            loss = loss + out.proposal.mean()
+            proposals.append(float(out.proposal.mean()))
         opt.zero_grad()
         loss.backward()
         opt.step()
     field.eval()
-    rays = _rays(256, 999)
-    t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
     with torch.no_grad():
-        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(256, 3))
+        return render(_rays(256, 999)), proposals
+
+
+def test_background_field_learns_a_wall_behind_the_box():
+    """A wall of one colour at z = -6 (behind the box [-1, 1]^3) is learned, and its depth found."""
+    torch.manual_seed(0)
+    field = BackgroundField(BackgroundFieldConfig(levels=(16, 32), num_samples=32), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    opt = torch.optim.Adam([{"params": field.density_grid.parameters(), "lr": 0.5}, {"params": field.mlp.parameters(), "lr": 1e-2},
+                            {"params": field.feature_grid.parameters(), "lr": 0.5}])
+    target = torch.tensor([0.9, 0.2, 0.1])
+    out, _ = _fit_wall(field, opt, target)
     assert float((out.rgb - target).abs().max()) < 0.05
     assert float(out.acc.mean()) > 0.95
 
@@ -250,26 +260,9 @@ def test_background_field_with_a_fine_field_learns_a_wall_behind_the_box():
     cfg = BackgroundFieldConfig(levels=(8,), num_samples=16, fine_levels=(16, 64), fine_samples=16, fine_log2_rows=12)
     field = BackgroundField(cfg, torch.tensor([[-1.0] * 3, [1.0] * 3]))
     assert field.fine_density_grid.hash_rows == [None, 1 << 12]  # the 64^3 level is hashed
-    from nerfpipe.fields.fast_field import direction_encoding
-    from nerfpipe.estimators.occupancy import ray_aabb_intersect
-
     opt = torch.optim.Adam([{"params": field.grid_parameters(), "lr": 0.5}, {"params": field.mlp.parameters(), "lr": 1e-2}])
     target = torch.tensor([0.9, 0.2, 0.1])
-    proposals = []
-    for step in range(150):
-        rays = _rays(512, step)
-        t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
-        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(512, 3))
-        loss = ((out.rgb - target) ** 2).mean() + out.proposal.mean()
-        proposals.append(float(out.proposal.mean()))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    field.eval()
-    rays = _rays(256, 999)
-    t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
-    with torch.no_grad():
-        out = field(rays.origins, rays.directions, direction_encoding(rays.directions), t_exit, torch.zeros(256, 3))
+    out, proposals = _fit_wall(field, opt, target)
     assert out.proposal is None  # evaluation: no losses
     assert float((out.rgb - target).abs().max()) < 0.05
     assert float(out.acc.mean()) > 0.95

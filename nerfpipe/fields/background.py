@@ -18,8 +18,8 @@ import math
 import torch
 from torch import nn
 
-from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, trilinear_corners
-from nerfpipe.functional.contraction import contract, disparity_samples, to_box_coordinates
+from nerfpipe.fields.grid import DenseGridEncoding, grid_gather
+from nerfpipe.functional.contraction import contract, disparity_samples, disparity_to_distance, to_box_coordinates
 from nerfpipe.functional.packed import distortion_loss_packed
 from nerfpipe.functional.sampling import pdf_samples
 from nerfpipe.functional.volrend import render_weights
@@ -165,11 +165,15 @@ class BackgroundField(nn.Module):
         c = contract(to_box_coordinates(pts, self.aabb))
         return (c[:, 1:] - c[:, :-1]).norm(dim=-1)
 
+    def _sigma(self, grid: DenseGridEncoding, corners: list) -> Float[Tensor, "num_points"]:
+        """Density from ``grid`` at points given by their ``corners`` (:meth:`_corners`)."""
+        raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(grid.tables, corners))
+        return nn.functional.softplus(raw[:, 0] + self.shift)
+
     def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
         """The density that renders (the fine field's, when there is one)."""
         grid = self.fine_density_grid if self.fine else self.density_grid
-        raw = sum(grid_gather(t, i, w) for t, (i, w) in zip(grid.tables, self._corners(points, grid)))
-        return nn.functional.softplus(raw[:, 0] + self.shift)
+        return self._sigma(grid, self._corners(points, grid))
 
     def forward(
         self,
@@ -190,22 +194,19 @@ class BackgroundField(nn.Module):
         deltas = self._contracted_lengths(origins, directions, t_start, deltas)
         points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
         corners = self._corners(points)
-        raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.density_grid.tables, corners))
-        sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
+        sigma = self._sigma(self.density_grid, corners).view(n, s)
         proposal = None
         if self.fine:
             coarse, _ = render_weights(sigma, deltas)
             edges = pdf_samples(torch.linspace(0.0, 1.0, s + 1, device=origins.device).expand(n, s + 1), coarse.detach(),
                                 self.cfg.fine_samples + 1, perturb=self.training, generator=generator)
-            inv0, inv1 = 1.0 / t_start.clamp(min=1e-6)[:, None], 1.0 / self.t_far
-            t_edges = 1.0 / (inv0 * (1.0 - edges) + inv1 * edges)
+            t_edges = disparity_to_distance(t_start, self.t_far, edges)
             t = 0.5 * (t_edges[:, 1:] + t_edges[:, :-1])
             s = self.cfg.fine_samples
             deltas = self._contracted_lengths(origins, directions, t_edges[:, 0], t_edges[:, 1:] - t_edges[:, :-1])
             points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
             corners = self._corners(points, self.fine_density_grid)
-            raw = sum(grid_gather(tb, i, w) for tb, (i, w) in zip(self.fine_density_grid.tables, corners))
-            sigma = nn.functional.softplus(raw[:, 0] + self.shift).view(n, s)
+            sigma = self._sigma(self.fine_density_grid, corners).view(n, s)
         feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
         if self.cfg.view_dependent:
             feats.append(dir_code.repeat_interleave(s, dim=0))

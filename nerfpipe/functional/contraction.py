@@ -51,6 +51,21 @@ def _contract_reference(x_box: Float[Tensor, "num_points 3"]) -> Float[Tensor, "
     return torch.stack(out) if out else x_box.clone()
 
 
+def disparity_to_distance(
+    t_start: Float[Tensor, "num_rays"], t_far: float, s: "Float[Tensor, 'n'] | Float[Tensor, 'num_rays n']"
+) -> Float[Tensor, "num_rays n"]:
+    """Distance along each ray of the points a fraction ``s`` of the way from ``t_start`` (0) to ``t_far``
+    (1), linearly in disparity ``1 / t``.
+
+    Example:
+        >>> disparity_to_distance(torch.tensor([1.0]), 1e9, torch.tensor([0.0, 0.5])).tolist()
+        [[1.0, 2.0]]
+    """
+    inv0 = 1.0 / t_start.clamp(min=1e-6)[:, None]
+    inv1 = 1.0 / max(float(t_far), 1e-6)
+    return 1.0 / (inv0 * (1.0 - s) + inv1 * s)
+
+
 def disparity_samples(
     t_start: Float[Tensor, "num_rays"], t_far: float, num_samples: int, jitter: "Float[Tensor, 'num_rays num_samples'] | None" = None
 ) -> "tuple[Float[Tensor, 'num_rays num_samples'], Float[Tensor, 'num_rays num_samples']]":
@@ -73,9 +88,7 @@ def disparity_samples(
         ([1.5, 500000000.0], 1.0)
     """
     s = torch.linspace(0.0, 1.0, num_samples + 1, device=t_start.device, dtype=t_start.dtype)
-    inv0 = 1.0 / t_start.clamp(min=1e-6)[:, None]
-    inv1 = 1.0 / max(float(t_far), 1e-6)
-    t = 1.0 / (inv0 * (1.0 - s) + inv1 * s)
+    t = disparity_to_distance(t_start, t_far, s)
     t_starts, deltas = t[:, :-1], t[:, 1:] - t[:, :-1]
     u = torch.full_like(deltas, 0.5) if jitter is None else jitter
     return t_starts + u * deltas, deltas

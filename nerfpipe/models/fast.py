@@ -316,9 +316,10 @@ class FastModel(Model):
         rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
+        rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, torch.zeros_like(bg))
         if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
-            bg = self._behind(flat, dir_code, t_exit, bg, accumulate_packed(weights[:, None], samples.ray_indices, len(flat))[:, 0], extras)
-        rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, bg)
+            bg = self._behind(flat, dir_code, t_exit, bg, acc, extras)
+        rgb = rgb + (1.0 - acc)[:, None] * bg  # over the background, as composite_packed does
         if self.training and self.appearance is not None:
             rgb = self._corrected(rgb, flat.cam_idx)
         if self.training:
