@@ -88,10 +88,12 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
                     run["wall"] += time.perf_counter() - t0
             for run in runs:
                 trainer = run["trainer"]
-                psnr, _ = evaluation.validate(trainer, cfg.eval_views)
+                psnr, _ = evaluation.validate(trainer, cfg.eval_views, final=True)
                 stats = trainer.model.stats()
+                fitted = trainer.last_appearance_fitted_psnr
                 rows.append(dict(name=run["name"], step=mark, wall=round(run["wall"], 2), s_per_step=round(run["wall"] / mark, 4),
-                                 psnr=round(psnr, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
+                                 psnr=round(psnr, 3), colour_fitted=round(trainer.last_fitted_psnr, 3),
+                                 appearance_fitted=None if fitted is None else round(fitted, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
                                  samples_per_ray=round(stats["samples_per_ray"], 2), load=round(os.getloadavg()[0], 2)))
                 print(json.dumps(rows[-1]), flush=True)
     append_log(cfg.log, rows)

@@ -16,7 +16,8 @@ from nerfpipe.checkpoint import CHECKPOINT
 from nerfpipe.errors import require
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.pixel_sampler import background_colors, composite_pixels
-from nerfpipe.render import FramePlan, capped_size, plan_frames, render_cameras, resize_cameras, to_uint8
+from nerfpipe.rays import camera_rays
+from nerfpipe.render import FramePlan, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, to_uint8
 from nerfpipe.runs import write_json
 
 
@@ -103,16 +104,32 @@ def eval_views(scene, num_views: int = 0) -> "list[int]":
     return idx[:num_views] if num_views else idx
 
 
+def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int) -> "float | None":
+    """PSNR on the right half of a view rendered with the appearance the model fits to its left half
+    (:meth:`~nerfpipe.models.base.Model.fitted_appearance`: NeRF-W's protocol for held-out views of photo
+    collections); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
+    half = rays.shape[1] // 2
+    gt = gt.to(rays.origins)
+    with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background.to(gt)) as fitted:
+        if not fitted:
+            return None
+        with torch.no_grad():
+            rgb = render_rays(model, rays[:, half:].reshape(-1), background.to(gt), chunk)[0].clamp(0, 1)
+    return psnr_from_mse(float(((rgb - gt[:, half:].reshape(-1, 3)) ** 2).mean()))
+
+
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
-                deadline: "float | None" = None, lpips=None, progress: bool = False) -> dict:
+                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False) -> dict:
     """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
     with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
 
     Returns the per-view ``psnr``, ``ssim``, ``fitted_psnr`` lists, the render ``seconds`` and ``pixels``
     (for the time one pixel takes), with ``keep_first`` the first rendered view as ``first``, and with an
-    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr.
+    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr. With
+    ``fit_appearance``, models with per-image appearance also give ``appearance_fitted_psnr``
+    (:func:`appearance_fitted_psnr`; its time is not in ``seconds``).
     """
-    out = {"psnr": [], "ssim": [], "fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
+    out = {"psnr": [], "ssim": [], "fitted_psnr": [], "appearance_fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
     cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
     views = enumerate(sizes)
     if progress:
@@ -131,6 +148,11 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         out["psnr"].append(p)
         out["ssim"].append(s)
         out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
+        if fit_appearance:
+            rays = camera_rays(resize_cameras(cams[i : i + 1], w, h).to(device), 0)
+            fitted = appearance_fitted_psnr(model, rays, gt, background, chunk)
+            if fitted is not None:
+                out["appearance_fitted_psnr"].append(fitted)
         if lpips is not None:
             with torch.no_grad():
                 out["lpips"].append(lpips(view.rgb, gt))
@@ -165,14 +187,18 @@ def lpips_scorer(device: str):
     return lambda a, b: float(net(a.permute(2, 0, 1)[None] * 2 - 1, b.permute(2, 0, 1)[None].to(a) * 2 - 1)), None
 
 
-def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None) -> "tuple[float, float]":
+def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False) -> "tuple[float, float]":
     """Mean (PSNR, SSIM) over ``num_views`` val views (0: all) at ``scale`` of the configured size (those begun
     before ``deadline``); logs it, keeps a snapshot of view 0 and the time one rendered pixel took
-    (``trainer.seconds_per_pixel``)."""
+    (``trainer.seconds_per_pixel``). The ``final`` one also fits per-image appearance to the left halves
+    (``trainer.last_appearance_fitted_psnr``, None without)."""
     scene, cfg = trainer.scene, trainer.cfg
     idx = eval_views(scene, num_views)
     bg = background_colors(trainer.eval_bg, 1)[0]
-    scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True, deadline=deadline)
+    scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True,
+                         deadline=deadline, fit_appearance=final)
+    fitted = scores["appearance_fitted_psnr"]
+    trainer.last_appearance_fitted_psnr = _mean(fitted) if fitted else None
     idx = idx[: len(scores["psnr"])]
     save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(scores["first"].rgb))
     psnr, ssim = _mean(scores["psnr"]), _mean(scores["ssim"])
@@ -208,7 +234,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     cfg, scene = trainer.cfg, trainer.scene
     idx = eval_views(scene, cfg.final_eval_views)
     if trainer.wall_left() is None:
-        return (*validate(trainer, cfg.final_eval_views), len(idx))
+        return (*validate(trainer, cfg.final_eval_views, final=True), len(idx))
     start = time.perf_counter()
     share = EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE  # the figures and videos come after
     allowed = share * trainer.wall_left()
@@ -220,7 +246,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     per_view = (time.perf_counter() - probe_start) / (pw * ph) * w * h
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
     fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
-    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start))
+    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True)
     views = trainer.history["val"][-1][-1]
     (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
     plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h],
@@ -283,6 +309,7 @@ def finish(trainer) -> dict:
         "val_psnr": psnr,
         "val_ssim": ssim,
         "val_psnr_colour_fitted": trainer.last_fitted_psnr,
+        **({} if trainer.last_appearance_fitted_psnr is None else {"val_psnr_appearance_fitted": trainer.last_appearance_fitted_psnr}),
         "val_views": views,
         "eval_scale": cfg.eval_scale * plan.get("final_eval", {}).get("scale", 1.0),
         "eval_max_size": cfg.eval_max_size,

@@ -39,7 +39,8 @@ BENCH_PNG = Shown("bench_curves", "image", ("psnr_vs_seconds.png",), "val PSNR a
 # Labels (and units) of the figures the stages write; other keys are shown under their own name.
 LABELS = {
     "val_psnr": ("val PSNR", "dB"),
-    "val_psnr_colour_fitted": ("val PSNR, right halves, colours fitted on left halves", "dB"), "train_psnr": ("train PSNR", "dB"), "val_ssim": ("val SSIM", ""),
+    "val_psnr_colour_fitted": ("val PSNR, right halves, colours fitted on left halves", "dB"),
+    "val_psnr_appearance_fitted": ("val PSNR, right halves, appearance codes fitted on left halves", "dB"), "train_psnr": ("train PSNR", "dB"), "val_ssim": ("val SSIM", ""),
     "val_views": ("val views", ""), "eval_scale": ("eval resolution factor", ""),
     "train_seconds": ("training time", "s"), "iterations": ("iterations", ""),
     "seconds_per_iteration": ("time per iteration", "s"), "rays_per_step": ("rays per step", ""),

@@ -284,9 +284,57 @@ def test_the_colour_behind_the_box_is_computed_only_for_rays_that_show_it():
     t_exit = model._behind_start(rays)
     bg = torch.full((4, 3), 0.25)
     acc = torch.tensor([1.0, 1.0 - BEHIND_SEEN / 2, 0.5, 0.0])
+    codes = model._image_codes(rays)  # this model has image codes (a photo collection): the mean one in evaluation
     with torch.no_grad():
-        got = model._behind(rays, code, t_exit, bg, acc, {})
-        full = model.behind(rays.origins, rays.directions, code, t_exit, bg).rgb
+        got = model._behind(rays, code, t_exit, bg, acc, {}, codes)
+        full = model.behind(rays.origins, rays.directions, code, t_exit, bg, codes=codes).rgb
     torch.testing.assert_close(got[:2], bg[:2])
     torch.testing.assert_close(got[2:], full[2:])
     assert float((full[2:] - bg[2:]).abs().max()) > 0.01  # the field behind the box does show there
+
+
+def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own():
+    """Two photographs of one scene under different skies (no colour map relates them: one sky's colour
+    varies left to right, the other's the opposite way): the image codes learn both; evaluation shows the
+    mean, and fitting a held-out view's code to some of its pixels (NeRF-W's protocol) renders the rest in
+    its own light, leaving the trained model unchanged."""
+    from nerfpipe.evaluation import appearance_fitted_psnr
+
+    torch.manual_seed(0)
+    model = _model(num_images=2, background_field=False, appearance_fit_steps=80)
+    assert model.image_codes is not None and model.image_codes.shape == (2, 8)
+
+    def sky(rays):
+        x = rays.directions[:, :1]
+        return torch.where(rays.cam_idx[:, None] == 0, torch.tensor([0.2, 0.4, 0.8]) + 0.5 * x, torch.tensor([0.7, 0.6, 0.4]) - 0.5 * x).clamp(0, 1)
+
+    model.train()
+    opt = torch.optim.Adam(model.param_groups())
+    for step in range(200):
+        rays = _rays(512, step)
+        rays.cam_idx = rays.cam_idx % 2
+        loss = sum(model.get_losses(model.get_outputs(rays, torch.zeros(512, 3)), sky(rays)).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    held_out = _rays(1024, 1000)
+    held_out.cam_idx = torch.zeros(1024, dtype=torch.long)
+    target = sky(held_out)
+    fit, test = held_out[:512], held_out[512:]
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with torch.no_grad():
+        mean_err = float(((model.get_outputs(test, torch.zeros(512, 3)).rgb - target[512:]) ** 2).mean())
+    with model.fitted_appearance(fit, target[:512], torch.zeros(3)) as fitted:
+        assert fitted
+        with torch.no_grad():
+            fitted_err = float(((model.get_outputs(test, torch.zeros(512, 3)).rgb - target[512:]) ** 2).mean())
+    assert fitted_err < 0.2 * mean_err and fitted_err < 2e-3, (fitted_err, mean_err)
+    assert model._view_appearance is None and all(p.requires_grad for p in model.parameters())
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(v, before[k], atol=0, rtol=0)
+    plain = _model(num_images=2, background_field=False, appearance=False)  # nothing to fit: no figure
+    view = RayBundle(origins=held_out.origins.reshape(32, 32, 3), directions=held_out.directions.reshape(32, 32, 3),
+                     cam_idx=held_out.cam_idx.reshape(32, 32), z_scale=held_out.z_scale.reshape(32, 32))
+    assert appearance_fitted_psnr(plain, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) is None
+    assert appearance_fitted_psnr(model, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) > 25.0

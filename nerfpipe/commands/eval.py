@@ -51,10 +51,11 @@ def eval_run(
     bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
     lpips, lpips_note = lpips_scorer(device)
     start = time.perf_counter()
-    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json)
+    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True)
     result = {
         "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}),
         "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
+        "psnr_appearance_fitted": _mean(scores["appearance_fitted_psnr"]) if scores["appearance_fitted_psnr"] else None,
         "lpips": _mean(scores["lpips"]) if lpips is not None else None, "lpips_note": lpips_note,
         "per_view": [{"view": i, "psnr": p, "ssim": s} for i, p, s in zip(idx, scores["psnr"], scores["ssim"])],
         "seconds": time.perf_counter() - start, "device": device,

@@ -124,10 +124,12 @@ class BackgroundField(nn.Module):
     Args:
         cfg: sizes and sampling.
         aabb: the object region ``[min, max]`` (maps to ``[-1, 1]^3`` before contraction).
+        code_dim: size of a per-ray appearance code appended to the colour MLP's input (0: none).
     """
 
-    def __init__(self, cfg: BackgroundFieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+    def __init__(self, cfg: BackgroundFieldConfig, aabb: Float[Tensor, "2 3"], code_dim: int = 0) -> None:
         super().__init__()
+        self.code_dim = code_dim
         self.cfg = cfg
         self.register_buffer("aabb", aabb.detach().clone().float())
         resolutions = [(n, n, n) for n in cfg.levels]
@@ -141,7 +143,7 @@ class BackgroundField(nn.Module):
             self.feature_grid = DenseGridEncoding(resolutions, cfg.feature_channels)
         self.shift = math.log(math.expm1(cfg.init_density))
         self.mlp = nn.Sequential(
-            nn.Linear(self.feature_grid.out_dim + (16 if cfg.view_dependent else 0), cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
+            nn.Linear(self.feature_grid.out_dim + (16 if cfg.view_dependent else 0) + code_dim, cfg.hidden), nn.ReLU(inplace=True), nn.Linear(cfg.hidden, 3)
         )
 
     def grid_parameters(self) -> "list[nn.Parameter]":
@@ -183,8 +185,10 @@ class BackgroundField(nn.Module):
         t_start: Float[Tensor, "num_rays"],
         background: Float[Tensor, "num_rays 3"],
         generator: "torch.Generator | None" = None,
+        codes: "Float[Tensor, 'num_rays code_dim'] | None" = None,
     ) -> BehindBox:
-        """Render the field along each ray from ``t_start`` on, composited over ``background``.
+        """Render the field along each ray from ``t_start`` on, composited over ``background``; ``codes``
+        (one per ray, when built with ``code_dim``) condition the colour on the ray's image.
 
         In training (``self.training``) the samples are stratified (random inside their intervals).
         """
@@ -210,6 +214,8 @@ class BackgroundField(nn.Module):
         feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
         if self.cfg.view_dependent:
             feats.append(dir_code.repeat_interleave(s, dim=0))
+        if self.code_dim:
+            feats.append(codes.repeat_interleave(s, dim=0))
         h = torch.cat(feats, dim=-1)
         rgbs = torch.sigmoid(self.mlp(h)).view(n, s, 3)
         weights, _ = render_weights(sigma, deltas)

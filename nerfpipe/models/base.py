@@ -5,9 +5,10 @@ A model is built from its config dataclass by ``config.setup(scene_info)`` and r
 entry-point group ``nerfpipe.models`` as :class:`ModelSpec` objects.
 """
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import Enum
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import nn
@@ -99,6 +100,13 @@ class Model(nn.Module):
         ``target_depth`` is the distance along each ray of a sparse point seen through it (NaN where
         none; None when the batch has none); models that do not use it ignore it."""
         return {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
+
+    @contextmanager
+    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"]) -> Iterator[bool]:
+        """Within the block, render as the image that shows ``rgb`` along ``rays`` was taken: models with
+        per-image appearance fit a held-out view's appearance to these pixels (the NeRF-W protocol: fit on
+        part of an image, score the rest). Yields whether anything was fitted; default: nothing to fit."""
+        yield False
 
     def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":
         """Hooks by place, each called with the step number (e.g. occupancy-grid updates)."""

@@ -16,8 +16,9 @@ Glossary:
 """
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -174,6 +175,14 @@ class FastConfig:
     measured 0.1-0.3 dB lower on colmap_mouse's held-out views."""
     appearance_lr: float = 1e-3
     """Adam learning rate of the per-image colour corrections."""
+    appearance_dim: int = 8
+    """With the colour corrections on: size of a per-image latent code (GLO, as in NeRF-W) given to the colour
+    of what lies outside the object region (the direction-only background and the field behind the box), so
+    each photograph's sky and surroundings take its own light and weather without fog in the box; zero-mean
+    over the images, so novel views get the mean (0: off)."""
+    appearance_fit_steps: int = 64
+    """Adam steps that fit a held-out view's correction and code to the left half of its image for the
+    ``val_psnr_appearance_fitted`` figure (the NeRF-W protocol; the right half is scored)."""
     depth_weight: float = 0.1
     """Weight of the sparse-point depth loss on rays through COLMAP track observations (the trainer's
     ``track_rays``): no opacity in front of an observed point, and the ray stops near it when the point
@@ -229,20 +238,24 @@ class FastModel(Model):
         self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
-        learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
-        self.background = self._background_head() if learn_bg else None
         real = info.unbounded
-        use_behind = real if cfg.background_field is None else cfg.background_field
-        self.behind = BackgroundField(cfg.behind, aabb) if use_behind else None
-        self.register_buffer("object_box", aabb.clone(), persistent=False)
         use_app = (real and info.focal_spread > APPEARANCE_FOCAL_SPREAD) if cfg.appearance is None else cfg.appearance
         self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
+        code_dim = cfg.appearance_dim if use_app else 0
+        self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
+        self._view_appearance: "Tensor | None" = None
+        """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
+        learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
+        self.background = self._background_head(code_dim) if learn_bg else None
+        use_behind = real if cfg.background_field is None else cfg.background_field
+        self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
+        self.register_buffer("object_box", aabb.clone(), persistent=False)
         self._samples_per_ray = 0.0
 
     @staticmethod
-    def _background_head() -> torch.nn.Module:
-        """Direction code -> colour offset from the trainer's background; starts at exactly zero."""
-        head = torch.nn.Sequential(torch.nn.Linear(16, 32), torch.nn.ReLU(), torch.nn.Linear(32, 3))
+    def _background_head(code_dim: int = 0) -> torch.nn.Module:
+        """Direction code (and image code) -> colour offset from the trainer's background; starts at exactly zero."""
+        head = torch.nn.Sequential(torch.nn.Linear(16 + code_dim, 32), torch.nn.ReLU(), torch.nn.Linear(32, 3))
         torch.nn.init.zeros_(head[2].weight)
         torch.nn.init.zeros_(head[2].bias)
         return head
@@ -304,8 +317,10 @@ class FastModel(Model):
         flat = rays.reshape(-1)
         bg = background.expand(*shape, 3).reshape(-1, 3)
         dir_code = direction_encoding(flat.directions)
+        codes = self._image_codes(flat)
         if self.background is not None:
-            bg = (bg + self.background(dir_code)).clamp(0.0, 1.0)
+            head_in = dir_code if codes is None else torch.cat([dir_code, codes], dim=-1)
+            bg = (bg + self.background(head_in)).clamp(0.0, 1.0)
         t_exit = self._behind_start(flat)
         extras = {}
         samples, sigma = self._samples(flat)
@@ -318,9 +333,9 @@ class FastModel(Model):
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
         rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, torch.zeros_like(bg))
         if self.behind is not None and (self._step >= self.cfg.behind_from or not self.training):
-            bg = self._behind(flat, dir_code, t_exit, bg, acc, extras)
+            bg = self._behind(flat, dir_code, t_exit, bg, acc, extras, codes)
         rgb = rgb + (1.0 - acc)[:, None] * bg  # over the background, as composite_packed does
-        if self.training and self.appearance is not None:
+        if self.appearance is not None and (self.training or self._view_appearance is not None):
             rgb = self._corrected(rgb, flat.cam_idx)
         if self.training:
             self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
@@ -338,14 +353,15 @@ class FastModel(Model):
             num_samples=len(samples), extras=extras,
         )
 
-    def _behind(self, rays: RayBundle, dir_code, t_exit, bg, acc, extras: dict) -> Float[Tensor, "num_rays 3"]:
+    def _behind(self, rays: RayBundle, dir_code, t_exit, bg, acc, extras: dict, codes=None) -> Float[Tensor, "num_rays 3"]:
         """The colour behind the box for every ray, computed only where the box lets ``BEHIND_SEEN`` of it
         through (``acc``: the box's opacity); the others keep ``bg``, which they do not show."""
         seen = ((1.0 - acc.detach()) > BEHIND_SEEN).nonzero()[:, 0]
         if len(seen) == 0:
             return bg
         sub = rays[seen]
-        behind = self.behind(sub.origins, sub.directions, dir_code[seen], t_exit[seen], bg[seen], generator=self.generator)
+        behind = self.behind(sub.origins, sub.directions, dir_code[seen], t_exit[seen], bg[seen], generator=self.generator,
+                             codes=None if codes is None else codes[seen])
         if behind.distortion is not None:
             extras["behind_distortion"] = behind.distortion.mean()
         if behind.proposal is not None:
@@ -357,10 +373,60 @@ class FastModel(Model):
         t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.object_box)
         return torch.where(t_out >= t_in, t_out, torch.zeros_like(t_out)).clamp(min=self.info.near)
 
+    @contextmanager
+    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"]) -> Iterator[bool]:
+        """Within the block (evaluation), render with the colour correction and image code fitted by Adam to
+        ``rgb`` along ``rays`` (``appearance_fit_steps`` steps of up to 2048 of them, everything else frozen),
+        instead of the mean. Yields False, fitting nothing, without per-image appearance."""
+        if self.appearance is None:
+            yield False
+            return
+        flat, target = rays.reshape(-1), rgb.reshape(-1, 3).to(rays.origins)
+        codes = 12 + (0 if self.image_codes is None else self.image_codes.shape[1])
+        vec = torch.zeros(codes, device=flat.device, requires_grad=True)
+        opt = torch.optim.Adam([vec], lr=0.02)
+        frozen = [p for p in self.parameters() if p.requires_grad]
+        gen = torch.Generator(device=flat.device).manual_seed(0)
+        was_training = self.training
+        self.eval()
+        try:
+            for p in frozen:
+                p.requires_grad_(False)
+            self._view_appearance = vec
+            with torch.enable_grad():
+                for _ in range(self.cfg.appearance_fit_steps):
+                    i = torch.randint(len(flat), (min(2048, len(flat)),), generator=gen, device=flat.device)
+                    out = self.get_outputs(flat[i], background.to(target).expand(len(i), 3))
+                    loss = torch.mean((out.rgb - target[i]) ** 2)
+                    opt.zero_grad(set_to_none=True)
+                    loss.backward()
+                    opt.step()
+            self._view_appearance = vec.detach()
+            yield True
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+            self._view_appearance = None
+            self.train(was_training)
+
+    def _image_codes(self, rays: RayBundle) -> "Float[Tensor, 'num_rays code_dim'] | None":
+        """Each ray's image code: its training image's (zero-mean over the images) in training, else a fitted
+        view's (:meth:`fitted_appearance`) or the mean (zero); None without codes."""
+        if self.image_codes is None:
+            return None
+        if self.training:
+            return (self.image_codes - self.image_codes.mean(0, keepdim=True))[rays.cam_idx.reshape(-1)]
+        code = self.image_codes.new_zeros(self.image_codes.shape[1]) if self._view_appearance is None else self._view_appearance[12:]
+        return code.expand(len(rays), -1)
+
     def _corrected(self, rgb: Float[Tensor, "num_rays 3"], cam_idx) -> Float[Tensor, "num_rays 3"]:
-        """Training colours through their image's affine correction (codes zero-mean over images)."""
-        codes = self.appearance - self.appearance.mean(0, keepdim=True)
-        p = codes[cam_idx.reshape(-1)]
+        """Colours through their image's affine correction (codes zero-mean over images), or a fitted view's
+        (:meth:`fitted_appearance`) while there is one."""
+        if self._view_appearance is None:
+            codes = self.appearance - self.appearance.mean(0, keepdim=True)
+            p = codes[cam_idx.reshape(-1)]
+        else:
+            p = self._view_appearance[:12].expand(len(rgb), -1)
         matrix = p[:, :9].view(-1, 3, 3) + torch.eye(3, device=rgb.device, dtype=rgb.dtype)
         return (matrix @ rgb[:, :, None])[:, :, 0] + p[:, 9:]
 
@@ -462,6 +528,8 @@ class FastModel(Model):
             groups[1]["params"] += list(self.behind.mlp.parameters())
         if self.appearance is not None:
             groups.append({"params": [self.appearance], "lr": self.cfg.appearance_lr, "eps": 1e-15})
+        if self.image_codes is not None:
+            groups[1]["params"].append(self.image_codes)
         return groups
 
     def stats(self) -> "dict[str, float]":
@@ -483,6 +551,13 @@ class FastModel(Model):
             self.behind = None
         if self.appearance is not None and prefix + "appearance" not in state_dict:
             self.appearance = None
+        if self.image_codes is not None and prefix + "image_codes" not in state_dict:  # from before the image codes
+            self.image_codes = None
+            device = self.object_box.device
+            if self.background is not None:
+                self.background = self._background_head().to(device)
+            if self.behind is not None:
+                self.behind = BackgroundField(self.cfg.behind, self.behind.aabb).to(device)
         steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
         self._step = int(steps)
         key = prefix + "field.aabb"
