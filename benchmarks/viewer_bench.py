@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.viewer.headless import BACKGROUND_JS, FRUSTUMS_JS, WATCH_BACKGROUND_JS, Chromium
+from nerfpipe.viewer.headless import BACKGROUND_JS, FRUSTUMS_JS, WATCH_BACKGROUND_JS, WATCH_MESSAGES_JS, Chromium
 
 PY = [sys.executable, "-m", "nerfpipe"]
 ROTATE_JS = "(() => { window.__viserMutable.cameraControl.rotate(%f, %f, false); return Date.now(); })()"
@@ -75,15 +75,18 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
         size = browser.wait_for(BACKGROUND_JS, timeout=60.0)
         render_seconds = time.perf_counter() - start
         browser.evaluate(WATCH_BACKGROUND_JS)
-        latencies, sizes = [], []
+        browser.evaluate(WATCH_MESSAGES_JS)
+        latencies, sizes, parts = [], [], []
         for k in range(moves):
             _quiet(browser)
+            load = Path("/proc/loadavg").read_text().split()[0]
             t = browser.evaluate(ROTATE_JS % (0.25 if k % 2 == 0 else -0.2, 0.03))
-            # the low frame: smaller than the first refinement (half of --max-size 512 on the longer side); a
-            # refinement of the previous view may still land after the move
+            # the low frame: at most half the first refinement's size (half of --max-size 512 on the longer
+            # side), so smaller than any refinement; a refinement of the previous view may still land after the move
             first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) < 256)[0] || null", timeout=30.0)
             latencies.append((first[0] - t) / 1000)
             sizes.append(first[1:])
+            parts.append(_split(browser, t, first[0]) | {"load": float(load)})
         _quiet(browser)
         browser.screenshot(tmp / "view.png")
         outside = browser.outside_requests()
@@ -92,8 +95,19 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
         proc.terminate()
         proc.wait(timeout=30)
     return {"url_printed_s": url_seconds, "frustums_shown_s": frustum_seconds, "first_render_shown_s": render_seconds, "cameras": num_cameras,
-            "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "outside_requests": outside,
+            "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "move_parts_s": parts, "outside_requests": outside,
             "screenshot": str(tmp / "view.png")}  # fmt: skip
+
+
+def _split(browser: Chromium, t: int, shown: int) -> dict:
+    """Where one move's latency went, by the page's clock: until the page sent the camera, from then to the
+    last live render the page received before it showed the low frame (the server, and the socket both
+    ways), and from that to the page showing it (decoding and drawing)."""
+    sent = browser.evaluate(f"window.__cameraSent.filter(e => e >= {t})[0] || null")
+    got = browser.evaluate(f"window.__imageReceived.filter(e => e >= {t} && e <= {shown}).pop() || null")
+    if sent is None or got is None:
+        return {"page_to_send_s": None, "server_s": None, "page_to_show_s": None}
+    return {"page_to_send_s": (sent - t) / 1000, "server_s": (got - sent) / 1000, "page_to_show_s": (shown - got) / 1000}
 
 
 def _first_of_view(browser: Chromium, viewer, n: int, t: int, timeout: float = 30.0) -> list:
@@ -107,6 +121,17 @@ def _first_of_view(browser: Chromium, viewer, n: int, t: int, timeout: float = 3
                 return entry
         time.sleep(0.02)
     raise TimeoutError("the page showed no render of the new view")
+
+
+def _scratch_run(run: Path, tmp: Path) -> Path:
+    """A folder that reads as ``run`` (a link to each of its entries) but gets a ``render/`` of its own:
+    the run measured is left as it was."""
+    scratch = tmp / "run"
+    scratch.mkdir()
+    for entry in run.iterdir():
+        if entry.name != "render":
+            (scratch / entry.name).symlink_to(entry.resolve())
+    return scratch
 
 
 def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), frames: int = 4) -> dict:
@@ -156,10 +181,11 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
         browser.close()
         thread.stop()
         viewer.stop()
-    subprocess.run([*PY, "render", str(run), "--path", str(file), "--pngs"], check=True, capture_output=True, env=_env())
+    scratch = _scratch_run(run, tmp)
+    subprocess.run([*PY, "render", str(scratch), "--path", str(file), "--pngs"], check=True, capture_output=True, env=_env())
     diffs = []
     for k in range(frames):
-        headless = iio.imread(run / "render" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
+        headless = iio.imread(scratch / "render" / f"{file.stem}_frames" / f"{k:05d}.png").astype(int)
         shown = viewer.preview_frames.get(k)
         diffs.append(None if shown is None else int(np.abs(headless - shown.astype(int)).max()))  # None: the preview never finished
     return {"path_file": str(file), "frames": frames, "size": list(size), "max_pixel_difference": diffs, "move_latency_split": split}
@@ -211,6 +237,7 @@ def main() -> None:
     p.add_argument("--iters", type=int, default=150)
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--skip-view", action="store_true")
+    p.add_argument("--skip-path", action="store_true", help="leave out the path = viewer check (and the in-process latency split)")
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="viewer_bench-"))
@@ -218,6 +245,7 @@ def main() -> None:
     if not a.skip_view:
         out["view"] = measure_view(a.run, a.moves, tmp)
         print(json.dumps(out["view"], indent=1), flush=True)
+    if not a.skip_view and not a.skip_path:
         out["path"] = measure_path(a.run, tmp)
         print(json.dumps(out["path"], indent=1), flush=True)
     if a.train is not None:

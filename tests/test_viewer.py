@@ -1,6 +1,7 @@
 """The browser viewer: what it draws, the live render (sizes, strips = whole frames), camera paths rendered
 headless equal to the viewer's frames, the server, the page in headless Chromium, and training watched."""
 
+import math
 import os
 import time
 import urllib.request
@@ -13,9 +14,9 @@ from nerfpipe.data_adapters import load
 from nerfpipe.camera_path import CameraPath, Keyframe, path_from_keyframes, read_camera_path, write_camera_path
 from nerfpipe.cli import main
 from nerfpipe.orbit import look_at
-from nerfpipe.render import render_cameras, to_uint8
+from nerfpipe.render import RenderedView, render_cameras, to_uint8
 from nerfpipe.viewer import content
-from nerfpipe.viewer.progressive import ProgressiveRenderer, ViewRequest, pinhole_camera
+from nerfpipe.viewer.progressive import ProgressiveRenderer, RenderCost, ViewRequest, pinhole_camera
 from nerfpipe.viewer.source import open_source
 
 
@@ -59,8 +60,10 @@ def run(synth, tmp_path_factory):
 
 
 def _drain(renderer: ProgressiveRenderer) -> None:
-    while renderer.step():
-        pass
+    """Every unit of work, waiting out the settle time before a refinement."""
+    while renderer.busy:
+        if not renderer.step():
+            time.sleep(renderer.wait_seconds() or 0.0)
 
 
 # ---------------------------------------------------------------- what is drawn
@@ -104,7 +107,7 @@ def test_a_live_render_request_returns_an_image_of_the_requested_size(run):
 def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     source = open_source(run)
     frames = []
-    renderer = ProgressiveRenderer(source.render, frames.append, max_size=64, strip_seconds=0.0)  # one row per strip
+    renderer = ProgressiveRenderer(source.render, frames.append, max_size=64, strip_seconds=0.0, settle=0.0)  # one row per strip
     eye = look_at(torch.tensor([0.0, -4.0, 1.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     renderer.request(ViewRequest(eye.numpy(), 0.8, 1.0, time.perf_counter()))
     renderer.step(), renderer.step(), renderer.step()  # the low frame, two strips
@@ -119,6 +122,87 @@ def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     renderer.refresh(again=True)  # the field changed while training: only the sharpest level again
     _drain(renderer)
     assert (frames[-1].level, frames[-1].levels) == (1, 1) and frames[-1].image.shape == frames[-2].image.shape
+
+
+class FakeRender:
+    """A render that takes ``overhead + pixels / rate`` seconds of its own clock and returns a flat view
+    whose colour is the camera's focal length (which camera it was)."""
+
+    def __init__(self, overhead: float = 0.02, rate: float = 10_000.0) -> None:
+        self.overhead, self.rate, self.now, self.calls = overhead, rate, 0.0, []
+
+    def clock(self) -> float:
+        return self.now
+
+    def __call__(self, cams) -> RenderedView:
+        w, h = int(cams.width[0]), int(cams.height[0])
+        seconds = self.overhead + w * h / self.rate
+        self.now += seconds
+        self.calls.append((w, h, seconds))
+        return RenderedView(torch.full((h, w, 3), float(cams.fy[0])), torch.ones(h, w), torch.ones(h, w), None)
+
+
+def _camera(fov: float, size=None) -> ViewRequest:
+    return ViewRequest(np.eye(4), fov, 1.5, time.perf_counter(), size)
+
+
+def test_render_cost_separates_the_per_call_time_from_the_per_pixel_time():
+    cost = RenderCost()
+    for pixels, calls in ((600, 1), (40_000, 20), (800, 1), (700, 1), (90_000, 45), (650, 1)):
+        cost.observe(pixels, calls * 0.015 + pixels / 12_000, calls)
+    assert cost.overhead == pytest.approx(0.015, rel=1e-6) and cost.rate == pytest.approx(12_000, rel=1e-6)
+    assert cost.seconds(cost.pixels(0.1)) == pytest.approx(0.1)
+    cost.observe(700, 5.0)  # one render under a burst of load: the median rate hardly moves
+    assert cost.rate == pytest.approx(12_000, rel=0.1)
+    alike = RenderCost(overhead=0.01)
+    for _ in range(3):
+        alike.observe(1000, 0.11)  # one size only: the overhead kept, the rate from the times
+    assert alike.overhead == pytest.approx(0.01) and alike.rate == pytest.approx(10_000)
+
+
+def test_the_low_frame_takes_about_low_seconds_and_stays_smaller_than_a_refinement():
+    fake = FakeRender(overhead=0.02, rate=10_000.0)
+    renderer = ProgressiveRenderer(fake, lambda frame: None, max_size=512, low_seconds=0.1, strip_seconds=0.05, settle=0.0, clock=fake.clock)
+    for k in range(8):  # distinct cameras, each refined to the end: the cost is measured on low frames and whole levels
+        renderer.request(_camera(0.5 + 0.01 * k))
+        _drain(renderer)
+    w, h = renderer.low_size(_camera(0.9))
+    assert fake.overhead + w * h / fake.rate == pytest.approx(0.1, rel=0.05)
+    low = [c for c in fake.calls if c[0] < 256]
+    assert 0.08 < low[-1][2] < 0.12  # the last low frame rendered took its 0.1 s
+    strips = [c[2] for c in fake.calls if c[0] in (256, 512)]
+    assert max(strips[-20:]) < 0.05 * 1.5  # strips: a move waits at most about strip_seconds
+    quick = FakeRender(overhead=0.001, rate=1e9)
+    renderer = ProgressiveRenderer(quick, lambda frame: None, max_size=512, settle=0.0, clock=quick.clock)
+    for fov in (0.8, 0.9):  # the first low frame is sized before anything was measured
+        renderer.request(_camera(fov))
+        _drain(renderer)
+    assert [c[:2] for c in quick.calls[3:]] == [(128, 85), (256, 171), (512, 341)]  # low frame: half the first level
+
+
+def test_the_refinement_waits_for_the_camera_to_settle_and_only_the_newest_camera_is_rendered():
+    fake = FakeRender()
+    frames = []
+    renderer = ProgressiveRenderer(fake, frames.append, max_size=64, settle=0.3, clock=fake.clock)
+    renderer.request(_camera(0.8))
+    assert renderer.step() and [f.level for f in frames] == [0]
+    assert renderer.step() is False and renderer.busy  # still: the refinement waits
+    assert renderer.wait_seconds() == pytest.approx(0.3 - fake.calls[0][2])
+    fake.now += renderer.wait_seconds()
+    assert renderer.step() and renderer.wait_seconds() == 0.0  # settled: strips follow one another
+    for fov in (0.7, 0.6, 0.5):  # the browser sent three cameras while a strip rendered
+        renderer.request(_camera(fov))
+    renderer.request(_camera(0.5))  # and the last one again, as it does
+    n = len(fake.calls)
+    assert renderer.step() and len(fake.calls) == n + 1 and [f.level for f in frames] == [0, 0]
+    focal = frames[-1].image.shape[0] / 2 / math.tan(0.5 / 2)
+    assert frames[-1].view.rgb[0, 0, 0].item() == pytest.approx(focal, rel=1e-5)  # the newest camera
+    assert renderer.step() is False  # moved again: refinement waits anew
+    fake.now += 1.0
+    _drain(renderer)
+    assert [f.level for f in frames] == [0, 0, 1, 2]
+    renderer.request(_camera(0.5))  # the camera on show, sent again: nothing to do
+    assert not renderer.busy and renderer.wait_seconds() is None
 
 
 def test_a_failing_render_drops_the_camera_and_goes_on(caplog):
@@ -182,7 +266,12 @@ def test_the_viewer_serves_its_page_on_a_free_port(synth, tmp_path):
     try:
         page = urllib.request.urlopen(viewer.url, timeout=30).read().decode()
         assert "<html" in page.lower() and viewer.server.get_port() > 0
-        assert set(viewer.layers) == {"/cameras", "/box", "/points", "/rays", "/mesh"}
+        assert set(viewer.layers) == {"/cameras", "/box", "/points", "/rays", "/mesh"} and viewer.layers["/mesh"][0].visible
+    finally:
+        viewer.stop()
+    viewer = Viewer(load(synth), lambda cams: None, port=0, mesh=content.find_mesh([tmp_path]), thumbnails=False)
+    try:  # with a live render the mesh starts hidden (it covers the render and slows the page's drawing)
+        assert not viewer.layers["/mesh"][0].visible
     finally:
         viewer.stop()
 

@@ -42,6 +42,18 @@ WATCH_BACKGROUND_JS = """(() => { window.__bgLog = []; let last = null;
   return true; })()"""
 """Starts logging ``[ms since the epoch, width, height]`` each time the page's live render changes (``window.__bgLog``)."""
 
+WATCH_MESSAGES_JS = """(() => { const m = window.__viserMutable; window.__cameraSent = []; window.__imageReceived = [];
+  const send = m.sendMessage;
+  m.sendMessage = (msg) => { if (msg.type === 'ViewerCameraMessage') window.__cameraSent.push(Date.now()); return send(msg); };
+  const queue = m.messageQueue, push = queue.push.bind(queue);
+  queue.push = (...items) => { for (const it of items) if (it.type === 'BackgroundImageMessage') window.__imageReceived.push(Date.now()); return push(...items); };
+  return true; })()"""
+"""Starts logging, in ms since the epoch, each camera the page sends (``window.__cameraSent``) and each live
+render it receives (``window.__imageReceived``, when it enters the page's message queue, before it is decoded
+and drawn): with :data:`WATCH_BACKGROUND_JS`, a move's latency splits into the page's part before the
+camera leaves, the server's (and the socket's), and the page's part after the image came. (It wraps the
+client's ``sendMessage`` and its queue's ``push``: a reconnect replaces the former.)"""
+
 
 def find_chromium() -> "str | None":
     return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
@@ -144,4 +156,4 @@ class Chromium:
                 self.process.wait(timeout=10)
 
 
-__all__ = ["BACKGROUND_JS", "FRUSTUMS_JS", "NODES_JS", "WATCH_BACKGROUND_JS", "Chromium", "find_chromium"]
+__all__ = ["BACKGROUND_JS", "FRUSTUMS_JS", "NODES_JS", "WATCH_BACKGROUND_JS", "WATCH_MESSAGES_JS", "Chromium", "find_chromium"]

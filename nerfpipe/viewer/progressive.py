@@ -1,16 +1,24 @@
-"""Progressive live rendering of a browser camera: a small frame at once, sharper ones while it stays still.
+"""Progressive live rendering of a browser camera: a small frame at once, sharper ones once it stays still.
 
 A :class:`ProgressiveRenderer` holds the latest camera a client asked for and does its work in small
 units (:meth:`ProgressiveRenderer.step`), so whoever drives it decides when the CPU is spent: a
 thread while a finished run is viewed, or the training loop between its steps (within a share of
 its time) while training is watched. Each camera is rendered as
 
-1. one **low** frame, whose pixel count is set from the measured rays per second so that it takes
-   about ``low_seconds`` (the first answer to a move; the time the image was requested to the time
-   it is shown is its latency);
-2. then each finer level (``levels``, as fractions of ``max_size`` on the longer side) in **strips**
-   of rows that take about ``strip_seconds`` each, each strip one unit of work, so a new camera
-   interrupts a refinement within one strip.
+1. one **low** frame, whose pixel count is chosen from the measured cost of a render (:class:`RenderCost`:
+   a fixed time per call plus a time per pixel) so that it takes about ``low_seconds``, at most half the
+   first level's width (the first answer to a move; the time the camera moved to the time the image is
+   ready is its latency);
+2. then, once no new camera came for ``settle`` seconds, each finer level (``levels``, as fractions of
+   ``max_size`` on the longer side) in **strips** of rows that take about ``strip_seconds`` each, each
+   strip one unit of work, so a new camera interrupts a refinement within one strip.
+
+While the camera moves only low frames are made, each of the newest camera (a camera that arrives while
+a unit runs replaces the one waiting; the same camera sent twice, as the browser does, is rendered once).
+Waiting ``settle`` after a move also leaves the CPU to the browser while it shows the low frame and
+sends the next camera: measured on colmap_mouse with headless Chromium on the same two cores, a
+refinement running through a move kept the page from sending the camera for 0.4-0.5 s and from showing
+the low frame for 0.4-0.7 s more (``python -m benchmarks.viewer_bench``, README).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
 height cut to the strip (:func:`strip_camera`), rendered by the one renderer
@@ -22,6 +30,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Callable
 
@@ -113,6 +122,67 @@ def depth_image(view: RenderedView) -> np.ndarray:
     return colorize_depth(view.depth, view.acc, lo, hi)
 
 
+class RenderCost:
+    """The time a render takes, ``overhead`` per call plus ``pixels / rate``, fitted to the last renders.
+
+    A render call has a fixed cost (setting up the rays, the model's per-call work: 13-18 ms for the
+    colmap_mouse run on this CPU) besides its cost per pixel, so a rate alone (pixels over seconds)
+    measured on small frames is too low and on large ones too high. Both terms are fitted by least
+    squares to the last ``window`` renders of whole views: low frames (one call) and finished levels
+    (one call per strip; a strip alone is not a sample of the view: rows of sky cost less than rows
+    through the object).
+
+    Args:
+        rate: pixels per second before anything was measured.
+        overhead: seconds per call before anything was measured.
+        window: renders the fit uses (the newest: the machine's load changes).
+
+    Example:
+        >>> cost = RenderCost()
+        >>> for pixels, calls in ((500, 1), (20_000, 10), (700, 1), (80_000, 40)):
+        ...     cost.observe(pixels, calls * 0.02 + pixels / 10_000, calls)
+        >>> round(cost.overhead, 3), round(cost.rate), round(cost.pixels(0.12))
+        (0.02, 10000, 1000)
+    """
+
+    def __init__(self, rate: float = 20_000.0, overhead: float = 0.01, window: int = 16) -> None:
+        self.rate, self.overhead = rate, overhead
+        self._seen: "deque[tuple[float, float, float]]" = deque(maxlen=window)
+
+    def observe(self, pixels: int, seconds: float, calls: int = 1) -> None:
+        """Record the time of ``pixels`` pixels rendered in ``calls`` calls, and refit."""
+        if seconds <= 0 or pixels <= 0:
+            return
+        self._seen.append((float(calls), float(pixels), float(seconds)))
+        n, p, t = np.array(self._seen).T
+        (overhead, per_pixel), *_ = np.linalg.lstsq(np.stack([n, p], 1), t, rcond=None)
+        per_call = p / n
+        if per_call.max() < 1.5 * per_call.min() or overhead < 0 or per_pixel <= 0:
+            overhead = self.overhead  # pixels per call too alike to tell the terms apart: keep the overhead
+        self.overhead = float(np.clip(overhead, 0.0, (t / n).min()))
+        # the rate: the median of the renders' own (one render under a burst of load does not swing it)
+        self.rate = float(np.median(p / np.maximum(t - self.overhead * n, 0.1 * t)))
+
+    def seconds(self, pixels: float, calls: int = 1) -> float:
+        """Predicted time of ``pixels`` pixels in ``calls`` calls."""
+        return calls * self.overhead + pixels / self.rate
+
+    def pixels(self, seconds: float) -> float:
+        """Pixels one call can have to take ``seconds`` (at least a tenth of what ``seconds`` buys without the overhead)."""
+        return max(seconds - self.overhead, 0.1 * seconds) * self.rate
+
+
+def same_camera(a: ViewRequest, b: "ViewRequest | None") -> bool:
+    """Whether two requests ask for the same image (the browser sends a camera again when nothing moved)."""
+    return (
+        b is not None
+        and a.size == b.size
+        and a.fov == b.fov
+        and a.aspect == b.aspect
+        and bool(np.array_equal(np.asarray(a.world_from_cam), np.asarray(b.world_from_cam)))
+    )
+
+
 class ProgressiveRenderer:
     """Renders the latest requested camera, coarse first (see the module docstring).
 
@@ -124,6 +194,8 @@ class ProgressiveRenderer:
         levels: finer levels after the low frame, as fractions of ``max_size``.
         low_seconds: the time the low frame should take.
         strip_seconds: the time one unit of refinement work (a strip) should take: a move waits at most this long.
+        settle: seconds without a new camera before the refinement starts.
+        clock: the time in seconds (``time.perf_counter``; tests pass their own).
     """
 
     def __init__(
@@ -134,22 +206,34 @@ class ProgressiveRenderer:
         levels: "tuple[float, ...]" = (0.5, 1.0),
         low_seconds: float = 0.1,
         strip_seconds: float = 0.05,
+        settle: float = 0.35,
+        clock: "Callable[[], float]" = time.perf_counter,
     ) -> None:
-        self.render, self.show = render, show
-        self.max_size, self.levels, self.low_seconds, self.strip_seconds = max_size, levels, low_seconds, strip_seconds
+        self.render, self.show, self.clock = render, show, clock
+        self.max_size, self.levels, self.low_seconds, self.strip_seconds, self.settle = max_size, levels, low_seconds, strip_seconds, settle
         self.mode = "rgb"
         """``rgb`` or ``depth``: what :attr:`Frame.image` shows."""
-        self.rays_per_second = 20_000.0
-        """Measured speed (moving average), sets the low frame's size."""
+        self.cost = RenderCost()
+        """Measured cost of a render: sets the low frame's size and the strips' height."""
         self._lock = threading.Lock()
         self._pending: "ViewRequest | None" = None
         self._last: "ViewRequest | None" = None
+        self._moved = -math.inf
+        """``clock()`` when the newest camera came."""
         self._job: "dict | None" = None
 
+    @property
+    def rays_per_second(self) -> float:
+        return self.cost.rate
+
     def request(self, req: ViewRequest) -> None:
-        """Ask for a camera; replaces whatever was asked before (thread-safe)."""
+        """Ask for a camera; replaces whatever was asked before (thread-safe). The camera being rendered
+        (or waiting) asked for again is ignored."""
         with self._lock:
+            if not req.again and same_camera(req, self._pending if self._pending is not None else self._last):
+                return
             self._pending = req
+            self._moved = self.clock()
 
     def refresh(self, again: bool = False) -> None:
         """Render the last camera again: from its low frame (the mode or size changed), or with ``again``
@@ -162,8 +246,17 @@ class ProgressiveRenderer:
     def busy(self) -> bool:
         return self._pending is not None or self._job is not None
 
+    def wait_seconds(self) -> "float | None":
+        """Seconds until :meth:`step` has work: 0 now, more while a refinement waits for the camera to
+        settle, None when there is nothing to do."""
+        if self._pending is not None:
+            return 0.0
+        if self._job is None:
+            return None
+        return max(0.0, self._moved + self.settle - self.clock())
+
     def step(self) -> bool:
-        """Do one unit of work (a low frame or a strip); False when there was none.
+        """Do one unit of work (a low frame or a strip); False when there was none now (see :meth:`wait_seconds`).
 
         A render that fails (out of memory, a model that cannot render this camera) drops the camera and
         is logged: the viewer, and the training it may watch, go on."""
@@ -183,20 +276,16 @@ class ProgressiveRenderer:
         elif req is not None:
             self._low(req)
             return True
-        if self._job is None:
+        if self._job is None or self.wait_seconds():
             return False
         self._strip()
         return True
 
     def _timed(self, cams: Cameras) -> "tuple[RenderedView, float]":
-        start = time.perf_counter()
+        start = self.clock()
         with torch.no_grad():
             view = self.render(cams)
-        seconds = time.perf_counter() - start
-        rays = int(cams.width[0]) * int(cams.height[0])
-        if seconds > 0:
-            self.rays_per_second = 0.7 * self.rays_per_second + 0.3 * rays / seconds
-        return view, seconds
+        return view, self.clock() - start
 
     def _levels(self, req: ViewRequest) -> "list[tuple[int, int]]":
         """``(width, height)`` of each refinement of a request."""
@@ -204,14 +293,22 @@ class ProgressiveRenderer:
             return [req.size]
         return [level_size(req.aspect, f, self.max_size) for f in self.levels]
 
+    def low_size(self, req: ViewRequest) -> "tuple[int, int]":
+        """``(width, height)`` of a request's low frame: what ``low_seconds`` buys, at most half the first
+        level's width and height (a fast field's low frame stays a quick answer, smaller than any refinement)."""
+        levels = self._levels(req)
+        cap = max(1, max(levels[0]) // 2) if levels else self.max_size
+        return size_for(req.aspect, self.cost.pixels(self.low_seconds), cap)
+
     def _emit(self, view: RenderedView, seconds: float, req: ViewRequest, level: int, levels: int) -> None:
         image = to_uint8(view.rgb) if self.mode == "rgb" else depth_image(view)
         self.show(Frame(image, view, seconds, time.perf_counter() - req.stamp, level, levels))
 
     def _low(self, req: ViewRequest) -> None:
         self._last = req
-        w, h = size_for(req.aspect, self.low_seconds * self.rays_per_second, self.max_size)
+        w, h = self.low_size(req)
         view, seconds = self._timed(pinhole_camera(req.world_from_cam, req.fov, w, h))
+        self.cost.observe(w * h, seconds)
         self._emit(view, seconds, req, 0, len(self._levels(req)))
         self._job = {"req": req, "level": 0, "parts": [], "row": 0, "seconds": 0.0, "levels": self._levels(req)}
         self._next_level()
@@ -232,21 +329,29 @@ class ProgressiveRenderer:
         job = self._job
         cams = job["cams"]
         w, h = int(cams.width[0]), int(cams.height[0])
-        rows = max(1, min(h - job["row"], int(self.strip_seconds * self.rays_per_second) // w))
+        rows = max(1, min(h - job["row"], int(self.cost.pixels(self.strip_seconds)) // w))
         view, seconds = self._timed(strip_camera(cams, job["row"], rows))
         job["parts"].append(view)
         job["row"] += rows
         job["seconds"] += seconds
         if job["row"] >= h:
+            self.cost.observe(w * h, job["seconds"], len(job["parts"]))
             self._emit(join_strips(job["parts"]), job["seconds"], job["req"], job["level"], len(job["levels"]))
             self._next_level()
 
 
 class RenderThread:
-    """Drives renderers from a thread of its own (viewing a finished run): works while any has work."""
+    """Drives renderers from a thread of its own (viewing a finished run): works while any has work,
+    sleeps until the next has (a refinement waiting for its camera to settle) or until woken.
 
-    def __init__(self, renderers: "Callable[[], list[ProgressiveRenderer]]") -> None:
-        self._renderers = renderers
+    Args:
+        renderers: the renderers to drive (asked again before each round: clients come and go).
+        threads: torch threads of the renders (None: leave torch's setting). torch's OpenMP threads of
+            one process are shared, so this sets the process's count too, for threads that start later.
+    """
+
+    def __init__(self, renderers: "Callable[[], list[ProgressiveRenderer]]", threads: "int | None" = None) -> None:
+        self._renderers, self._threads = renderers, threads
         self._wake = threading.Event()
         self._stop = False
         self._thread = threading.Thread(target=self._run, name="nerfpipe-view-render", daemon=True)
@@ -261,13 +366,16 @@ class RenderThread:
         self._thread.join(timeout=10)
 
     def _run(self) -> None:
+        if self._threads is not None:
+            torch.set_num_threads(self._threads)
         while not self._stop:
             worked = False
             for r in self._renderers():
                 worked = r.step() or worked
             if not worked:
-                self._wake.wait(0.05)
+                waits = [w for w in (r.wait_seconds() for r in self._renderers()) if w is not None]
+                self._wake.wait(min(waits + [1.0]))
                 self._wake.clear()
 
 
-__all__ = ["Frame", "ProgressiveRenderer", "RenderThread", "ViewRequest", "pinhole_camera", "strip_camera"]
+__all__ = ["Frame", "ProgressiveRenderer", "RenderCost", "RenderThread", "ViewRequest", "pinhole_camera", "same_camera", "strip_camera"]

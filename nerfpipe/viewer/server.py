@@ -121,7 +121,11 @@ class Viewer:
 
             v, f, colours = content.read_mesh(mesh, scene)
             shown = trimesh.Trimesh(v, f, vertex_colors=colours, process=False)
-            self.layers["/mesh"] = [s.add_mesh_trimesh("/mesh", shown) if colours is not None else s.add_mesh_simple("/mesh", v, f, color=(200, 200, 200))]
+            handle = s.add_mesh_trimesh("/mesh", shown) if colours is not None else s.add_mesh_simple("/mesh", v, f, color=(200, 200, 200))
+            # hidden while there is a live render: it covers the render, and the browser drawing its faces
+            # (software WebGL, 100k faces) took 0.5 s a frame on this CPU, to the page showing a new frame
+            handle.visible = self.render is None
+            self.layers["/mesh"] = [handle]
         self._set_initial_camera()
         self._thumbnails = threading.Thread(target=self._add_thumbnails, name="nerfpipe-view-thumbnails", daemon=True)
         if thumbnails:
@@ -138,17 +142,22 @@ class Viewer:
         self.server.initial_camera.fov = float(2 * torch.atan(cams.height[first].double() / (2 * cams.fy[first].double())))
 
     def _add_thumbnails(self) -> None:
+        """Every photo shrunk first, then all sent at once: the page takes them in one frame (one at a
+        time, each cost the browser a frame of its software WebGL, and the page lagged for seconds)."""
         self._first_frame.wait(timeout=None if self.render is not None else 0.0)
-        images = self.scene.images
-        for name, handle in list(self.frustum_handles.items()):
+        images, shrunk = self.scene.images, {}
+        for name in list(self.frustum_handles):
             i = int(name.split("/")[1])
             if self._stopped:
                 return
             if images.has(i):
                 try:
-                    handle.image = content.thumbnail(images.load(i))
+                    shrunk[name] = content.thumbnail(images.load(i))
                 except Exception:  # noqa: BLE001 - a photo that does not decode stays a bare frustum
                     continue
+        with self.server.atomic():
+            for name, image in shrunk.items():
+                self.frustum_handles[name].image = image
 
     # ---------------------------------------------------------------- the panel
     def _build_gui(self) -> None:
@@ -162,7 +171,7 @@ class Viewer:
         with gui.add_folder("Layers"):
             for label, node in (("Cameras", "/cameras"), ("Points", "/points"), ("Box", "/box"), ("Training rays", "/rays"), ("Mesh", "/mesh")):
                 if node in self.layers:
-                    box = gui.add_checkbox(label, initial_value=True)
+                    box = gui.add_checkbox(label, initial_value=all(h.visible for h in self.layers[node]))
                     box.on_update(lambda e, node=node: self._set_visible(node, e.target.value))
         self._build_path_gui()
 
