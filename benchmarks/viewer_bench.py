@@ -3,10 +3,13 @@
 1. **Start**: ``nerfpipe view RUN`` launched as a process, to the page showing every camera frustum and
    the first live render (seconds from the launch).
 2. **Move latency**: the browser's camera turned (``cameraControl.rotate``), to the page showing the
-   low frame of the new view (the first frame under 256 pixels on its longer side after the move),
-   timed by the page's own clock (ms since the epoch, on both sides); ``--moves`` times, each after
-   the page's render stayed unchanged for 1.5 s. Then, in-process, where it goes: browser to server,
-   the server's low frame, server to the page.
+   low frame of the new view (the first frame under 256 pixels on its longer side after the move: the
+   low frame is at most half the first refinement, 256 at ``--max-size 512``), timed by the page's own
+   clock (ms since the epoch, on both sides); ``--moves`` times, each after the page's render stayed
+   unchanged for 1.5 s (a refinement of 512 px may still be running: a move then interrupts it). Each
+   move is split by the page's clock (``move_parts_s``): until the page sent the camera, from then to
+   the page receiving the image (the server and the socket), and from then to the page showing it.
+   Then, in-process, the server's side: browser to server, the server's low frame, server to the page.
 3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
    each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
    the largest pixel difference (of 255) between the two.
@@ -83,7 +86,11 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
             t = browser.evaluate(ROTATE_JS % (0.25 if k % 2 == 0 else -0.2, 0.03))
             # the low frame: at most half the first refinement's size (half of --max-size 512 on the longer
             # side), so smaller than any refinement; a refinement of the previous view may still land after the move
-            first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) < 256)[0] || null", timeout=30.0)
+            try:
+                first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) < 256)[0] || null", timeout=30.0)
+            except TimeoutError:  # the page never showed it (it took a later image in the same frame): a miss, recorded
+                latencies.append(None), sizes.append(None), parts.append({"load": float(load)})
+                continue
             latencies.append((first[0] - t) / 1000)
             sizes.append(first[1:])
             parts.append(_split(browser, t, first[0]) | {"load": float(load)})
@@ -144,7 +151,7 @@ def measure_path(run: Path, tmp: Path, size: "tuple[int, int]" = (160, 120), fra
 
     source = open_source(run)
     viewer = Viewer(source.scene, source.render, port=0, path_file=tmp / "bench_path.json", thumbnails=False)
-    thread = RenderThread(viewer.renderers)
+    thread = RenderThread(viewer.renderers, threads=1)  # as nerfpipe view's default
     viewer.wake = thread.wake
     browser = Chromium(tmp / "profile-path", width=1200, height=800)
     try:

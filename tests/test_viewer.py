@@ -59,11 +59,11 @@ def run(synth, tmp_path_factory):
     return out
 
 
-def _drain(renderer: ProgressiveRenderer) -> None:
-    """Every unit of work, waiting out the settle time before a refinement."""
+def _drain(renderer: ProgressiveRenderer, wait=time.sleep) -> None:
+    """Every unit of work, waiting (``wait(seconds)``) whenever the renderer has none yet (settle, rests)."""
     while renderer.busy:
         if not renderer.step():
-            time.sleep(renderer.wait_seconds() or 0.0)
+            wait(renderer.wait_seconds() or 0.0)
 
 
 # ---------------------------------------------------------------- what is drawn
@@ -107,7 +107,7 @@ def test_a_live_render_request_returns_an_image_of_the_requested_size(run):
 def test_a_new_camera_interrupts_a_refinement_within_one_strip(run):
     source = open_source(run)
     frames = []
-    renderer = ProgressiveRenderer(source.render, frames.append, max_size=64, strip_seconds=0.0, settle=0.0)  # one row per strip
+    renderer = ProgressiveRenderer(source.render, frames.append, max_size=64, strip_seconds=0.0, settle=0.0, refine_share=1.0)  # one row per strip
     eye = look_at(torch.tensor([0.0, -4.0, 1.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     renderer.request(ViewRequest(eye.numpy(), 0.8, 1.0, time.perf_counter()))
     renderer.step(), renderer.step(), renderer.step()  # the low frame, two strips
@@ -133,6 +133,9 @@ class FakeRender:
 
     def clock(self) -> float:
         return self.now
+
+    def wait(self, seconds: float) -> None:
+        self.now += seconds
 
     def __call__(self, cams) -> RenderedView:
         w, h = int(cams.width[0]), int(cams.height[0])
@@ -165,7 +168,7 @@ def test_the_low_frame_takes_about_low_seconds_and_stays_smaller_than_a_refineme
     renderer = ProgressiveRenderer(fake, lambda frame: None, max_size=512, low_seconds=0.1, strip_seconds=0.05, settle=0.0, clock=fake.clock)
     for k in range(8):  # distinct cameras, each refined to the end: the cost is measured on low frames and whole levels
         renderer.request(_camera(0.5 + 0.01 * k))
-        _drain(renderer)
+        _drain(renderer, fake.wait)
     w, h = renderer.low_size(_camera(0.9))
     assert fake.overhead + w * h / fake.rate == pytest.approx(0.1, rel=0.05)
     low = [c for c in fake.calls if c[0] < 256]
@@ -176,7 +179,7 @@ def test_the_low_frame_takes_about_low_seconds_and_stays_smaller_than_a_refineme
     renderer = ProgressiveRenderer(quick, lambda frame: None, max_size=512, settle=0.0, clock=quick.clock)
     for fov in (0.8, 0.9):  # the first low frame is sized before anything was measured
         renderer.request(_camera(fov))
-        _drain(renderer)
+        _drain(renderer, quick.wait)
     assert [c[:2] for c in quick.calls[3:]] == [(128, 85), (256, 171), (512, 341)]  # low frame: half the first level
 
 
@@ -189,7 +192,8 @@ def test_the_refinement_waits_for_the_camera_to_settle_and_only_the_newest_camer
     assert renderer.step() is False and renderer.busy  # still: the refinement waits
     assert renderer.wait_seconds() == pytest.approx(0.3 - fake.calls[0][2])
     fake.now += renderer.wait_seconds()
-    assert renderer.step() and renderer.wait_seconds() == 0.0  # settled: strips follow one another
+    assert renderer.step() and renderer.wait_seconds() == pytest.approx(fake.calls[-1][2])  # a strip, then as long a rest
+    assert renderer.step() is False
     for fov in (0.7, 0.6, 0.5):  # the browser sent three cameras while a strip rendered
         renderer.request(_camera(fov))
     renderer.request(_camera(0.5))  # and the last one again, as it does
@@ -199,7 +203,7 @@ def test_the_refinement_waits_for_the_camera_to_settle_and_only_the_newest_camer
     assert frames[-1].view.rgb[0, 0, 0].item() == pytest.approx(focal, rel=1e-5)  # the newest camera
     assert renderer.step() is False  # moved again: refinement waits anew
     fake.now += 1.0
-    _drain(renderer)
+    _drain(renderer, fake.wait)
     assert [f.level for f in frames] == [0, 0, 1, 2]
     renderer.request(_camera(0.5))  # the camera on show, sent again: nothing to do
     assert not renderer.busy and renderer.wait_seconds() is None
@@ -228,7 +232,7 @@ def test_a_camera_path_renders_headless_as_the_viewer_renders_it(run, tmp_path):
     import imageio.v3 as iio
 
     frames = []
-    renderer = ProgressiveRenderer(source.render, frames.append, strip_seconds=0.0)
+    renderer = ProgressiveRenderer(source.render, frames.append, strip_seconds=0.0, settle=0.0, refine_share=1.0)
     for i in range(3):
         c = read_camera_path(file).cameras[i]
         fov = float(2 * torch.atan(c.height.double() / (2 * c.fy.double())))

@@ -15,10 +15,12 @@ its time) while training is watched. Each camera is rendered as
 
 While the camera moves only low frames are made, each of the newest camera (a camera that arrives while
 a unit runs replaces the one waiting; the same camera sent twice, as the browser does, is rendered once).
-Waiting ``settle`` after a move also leaves the CPU to the browser while it shows the low frame and
-sends the next camera: measured on colmap_mouse with headless Chromium on the same two cores, a
-refinement running through a move kept the page from sending the camera for 0.4-0.5 s and from showing
-the low frame for 0.4-0.7 s more (``python -m benchmarks.viewer_bench``, README).
+The refinement also leaves the CPU to the browser: it waits ``settle`` after a move (the page shows the
+low frame meanwhile) and then renders at most ``refine_share`` of the time (it rests after each strip;
+a new camera is served at once). Measured on colmap_mouse with headless Chromium on the same two cores
+(load 4-5), a refinement rendering without rest kept the page from sending a moved camera for 0.06-1.3 s,
+and with half the time 1 ms; move to low frame shown 0.50-1.87 s against 0.22-0.44 s
+(``python -m benchmarks.viewer_bench``, README).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
 height cut to the strip (:func:`strip_camera`), rendered by the one renderer
@@ -195,6 +197,8 @@ class ProgressiveRenderer:
         low_seconds: the time the low frame should take.
         strip_seconds: the time one unit of refinement work (a strip) should take: a move waits at most this long.
         settle: seconds without a new camera before the refinement starts.
+        refine_share: the most of the time the refinement renders: after a strip of ``t`` seconds it rests
+            ``t * (1 / refine_share - 1)`` (a new camera is served at once all the same).
         clock: the time in seconds (``time.perf_counter``; tests pass their own).
     """
 
@@ -207,10 +211,12 @@ class ProgressiveRenderer:
         low_seconds: float = 0.1,
         strip_seconds: float = 0.05,
         settle: float = 0.35,
+        refine_share: float = 0.5,
         clock: "Callable[[], float]" = time.perf_counter,
     ) -> None:
         self.render, self.show, self.clock = render, show, clock
         self.max_size, self.levels, self.low_seconds, self.strip_seconds, self.settle = max_size, levels, low_seconds, strip_seconds, settle
+        self.refine_share = refine_share
         self.mode = "rgb"
         """``rgb`` or ``depth``: what :attr:`Frame.image` shows."""
         self.cost = RenderCost()
@@ -220,6 +226,8 @@ class ProgressiveRenderer:
         self._last: "ViewRequest | None" = None
         self._moved = -math.inf
         """``clock()`` when the newest camera came."""
+        self._rested = -math.inf
+        """``clock()`` when the rest after the last strip ends."""
         self._job: "dict | None" = None
 
     @property
@@ -248,12 +256,12 @@ class ProgressiveRenderer:
 
     def wait_seconds(self) -> "float | None":
         """Seconds until :meth:`step` has work: 0 now, more while a refinement waits for the camera to
-        settle, None when there is nothing to do."""
+        settle or rests after a strip, None when there is nothing to do."""
         if self._pending is not None:
             return 0.0
         if self._job is None:
             return None
-        return max(0.0, self._moved + self.settle - self.clock())
+        return max(0.0, self._moved + self.settle - self.clock(), self._rested - self.clock())
 
     def step(self) -> bool:
         """Do one unit of work (a low frame or a strip); False when there was none now (see :meth:`wait_seconds`).
@@ -331,6 +339,7 @@ class ProgressiveRenderer:
         w, h = int(cams.width[0]), int(cams.height[0])
         rows = max(1, min(h - job["row"], int(self.cost.pixels(self.strip_seconds)) // w))
         view, seconds = self._timed(strip_camera(cams, job["row"], rows))
+        self._rested = self.clock() + seconds * (1.0 / self.refine_share - 1.0)
         job["parts"].append(view)
         job["row"] += rows
         job["seconds"] += seconds
