@@ -296,7 +296,7 @@ def test_in_headless_chromium_the_page_shows_the_cameras_and_the_live_render(run
     camera, the live render arrives, a keyframe placed from the browser's camera saves as a path, and
     the screenshot is not blank."""
     _viser()
-    from nerfpipe.viewer.headless import BACKGROUND_JS, FRUSTUMS_JS, Chromium, find_chromium
+    from nerfpipe.viewer.headless import BACKGROUND_JS, FRUSTUMS_JS, WATCH_MESSAGES_JS, Chromium, find_chromium
     from nerfpipe.viewer.progressive import RenderThread
     from nerfpipe.viewer.server import Viewer
 
@@ -310,6 +310,10 @@ def test_in_headless_chromium_the_page_shows_the_cameras_and_the_live_render(run
         browser.open(viewer.url)
         assert browser.wait_for(FRUSTUMS_JS, lambda n: n == len(source.scene.cameras), timeout=60.0) == len(source.scene.cameras)
         assert browser.wait_for(BACKGROUND_JS, timeout=60.0)[0] > 0
+        browser.evaluate(WATCH_MESSAGES_JS)  # a move: the page sends the camera, a frame of it comes back
+        moved = browser.evaluate("(() => { window.__viserMutable.cameraControl.rotate(0.3, 0.0, false); return Date.now(); })()")
+        got = browser.wait_for(f"window.__imageReceived.filter(e => e >= {moved}).length", timeout=60.0)
+        assert got >= 1 and browser.evaluate(f"window.__cameraSent.filter(e => e >= {moved}).length") >= 1
         client = next(iter(viewer.server.get_clients().values()))
         viewer.add_keyframe_from(client)
         viewer.add_keyframe(Keyframe(viewer.keyframes[0].world_from_cam.clone(), 0.9, 1.0))
