@@ -10,6 +10,7 @@
    move is split by the page's clock (``move_parts_s``): until the page sent the camera, from then to
    the page receiving the image (the server and the socket), and from then to the page showing it.
    Then, in-process, the server's side: browser to server, the server's low frame, server to the page.
+   And one more move, to the page showing the half and the full ``--max-size`` frames (``refine_s``).
 3. **Path = viewer**: keyframes placed from the browser's camera (two moves apart), the path saved,
    each frame previewed in the viewer at the path's size, then ``nerfpipe render RUN --path FILE --pngs``:
    the largest pixel difference (of 255) between the two.
@@ -44,6 +45,13 @@ ROTATE_JS = "(() => { window.__viserMutable.cameraControl.rotate(%f, %f, false);
 
 def _env() -> dict:
     return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+LOW_FRAME_JS = """(() => { const t = %d; const sent = window.__cameraSent.filter(e => e >= t)[0];
+  const got = sent === undefined ? undefined : window.__imageReceived.filter(e => e >= sent)[0];
+  return got === undefined ? null : window.__bgLog.filter(e => e[0] >= got && Math.max(e[1], e[2]) < 256)[0] || null; })()"""
+"""The page's first low frame after the move at ``t``: shown after an image came that was sent for the new camera
+(a frame of the former view still on its way is not it)."""
 
 
 def _launch_view(run: Path, port: int) -> "tuple[subprocess.Popen, str, float]":
@@ -86,14 +94,16 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
             t = browser.evaluate(ROTATE_JS % (0.25 if k % 2 == 0 else -0.2, 0.03))
             # the low frame: at most half the first refinement's size (half of --max-size 512 on the longer
             # side), so smaller than any refinement; a refinement of the previous view may still land after the move
+            # (and a low frame of it: the page's log of what it sent and received tells them apart)
             try:
-                first = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) < 256)[0] || null", timeout=30.0)
+                first = browser.wait_for(LOW_FRAME_JS % t, timeout=30.0)
             except TimeoutError:  # the page never showed it (it took a later image in the same frame): a miss, recorded
                 latencies.append(None), sizes.append(None), parts.append({"load": float(load)})
                 continue
             latencies.append((first[0] - t) / 1000)
             sizes.append(first[1:])
             parts.append(_split(browser, t, first[0]) | {"load": float(load)})
+        refine = _refinement(browser)
         _quiet(browser)
         browser.screenshot(tmp / "view.png")
         outside = browser.outside_requests()
@@ -102,8 +112,23 @@ def measure_view(run: Path, moves: int, tmp: Path) -> dict:
         proc.terminate()
         proc.wait(timeout=30)
     return {"url_printed_s": url_seconds, "frustums_shown_s": frustum_seconds, "first_render_shown_s": render_seconds, "cameras": num_cameras,
-            "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "move_parts_s": parts, "outside_requests": outside,
+            "first_size": size, "move_latency_s": latencies, "move_first_size": sizes, "move_parts_s": parts, "refine_s": refine, "outside_requests": outside,
             "screenshot": str(tmp / "view.png")}  # fmt: skip
+
+
+def _refinement(browser: Chromium, sizes: "tuple[int, ...]" = (256, 512), timeout: float = 180.0) -> dict:
+    """One more move, then the seconds until the page shows its frame of each refinement (longer side
+    ``sizes``: half and full ``--max-size 512``), with the load at the move."""
+    _quiet(browser)
+    out = {"load": float(Path("/proc/loadavg").read_text().split()[0])}
+    t = browser.evaluate(ROTATE_JS % (0.2, 0.0))
+    for size in sizes:
+        try:
+            shown = browser.wait_for(f"window.__bgLog.filter(e => e[0] > {t} && Math.max(e[1], e[2]) == {size})[0] || null", timeout=timeout)
+            out[str(size)] = (shown[0] - t) / 1000
+        except TimeoutError:
+            out[str(size)] = None
+    return out
 
 
 def _split(browser: Chromium, t: int, shown: int) -> dict:

@@ -16,7 +16,7 @@ from nerfpipe.cli import main
 from nerfpipe.orbit import look_at
 from nerfpipe.render import RenderedView, render_cameras, to_uint8
 from nerfpipe.viewer import content
-from nerfpipe.viewer.progressive import ProgressiveRenderer, RenderCost, ViewRequest, pinhole_camera
+from nerfpipe.viewer.progressive import ProgressiveRenderer, RenderCost, ViewRequest, cpu_sample, others_busy, pinhole_camera
 from nerfpipe.viewer.source import open_source
 
 
@@ -149,6 +149,14 @@ def _camera(fov: float, size=None) -> ViewRequest:
     return ViewRequest(np.eye(4), fov, 1.5, time.perf_counter(), size)
 
 
+def test_other_load_is_the_busy_cpus_less_this_process():
+    assert others_busy((0.0, 0.0, 0.0), (400.0, 100.0, 50.0), cpus=2) == pytest.approx(1.25)  # 1.5 busy, 0.25 ours
+    assert others_busy((0.0, 0.0, 0.0), (400.0, 200.0, 200.0), cpus=2) == 0.0  # all the busy time ours
+    assert others_busy((5.0, 1.0, 1.0), (5.0, 1.0, 1.0), cpus=2) == 0.0  # no tick counted: no measurement
+    sample = cpu_sample()
+    assert sample is None or (sample[0] > sample[1] >= 0 and sample[2] >= 0)
+
+
 def test_render_cost_separates_the_per_call_time_from_the_per_pixel_time():
     cost = RenderCost()
     for pixels, calls in ((600, 1), (40_000, 20), (800, 1), (700, 1), (90_000, 45), (650, 1)):
@@ -165,7 +173,7 @@ def test_render_cost_separates_the_per_call_time_from_the_per_pixel_time():
 
 def test_the_low_frame_takes_about_low_seconds_and_stays_smaller_than_a_refinement():
     fake = FakeRender(overhead=0.02, rate=10_000.0)
-    renderer = ProgressiveRenderer(fake, lambda frame: None, max_size=512, low_seconds=0.1, strip_seconds=0.05, settle=0.0, clock=fake.clock)
+    renderer = ProgressiveRenderer(fake, lambda frame: None, max_size=512, low_seconds=0.1, strip_seconds=0.05, settle=0.0, contended=lambda: True, clock=fake.clock)
     for k in range(8):  # distinct cameras, each refined to the end: the cost is measured on low frames and whole levels
         renderer.request(_camera(0.5 + 0.01 * k))
         _drain(renderer, fake.wait)
@@ -186,7 +194,7 @@ def test_the_low_frame_takes_about_low_seconds_and_stays_smaller_than_a_refineme
 def test_the_refinement_waits_for_the_camera_to_settle_and_only_the_newest_camera_is_rendered():
     fake = FakeRender()
     frames = []
-    renderer = ProgressiveRenderer(fake, frames.append, max_size=64, settle=0.3, clock=fake.clock)
+    renderer = ProgressiveRenderer(fake, frames.append, max_size=64, settle=0.3, contended=lambda: True, clock=fake.clock)
     renderer.request(_camera(0.8))
     assert renderer.step() and [f.level for f in frames] == [0]
     assert renderer.step() is False and renderer.busy  # still: the refinement waits
@@ -194,6 +202,9 @@ def test_the_refinement_waits_for_the_camera_to_settle_and_only_the_newest_camer
     fake.now += renderer.wait_seconds()
     assert renderer.step() and renderer.wait_seconds() == pytest.approx(fake.calls[-1][2])  # a strip, then as long a rest
     assert renderer.step() is False
+    renderer.contended = lambda: False  # nobody else wants the CPU: no rest
+    fake.now += renderer.wait_seconds()
+    assert renderer.step() and renderer.wait_seconds() == 0.0
     for fov in (0.7, 0.6, 0.5):  # the browser sent three cameras while a strip rendered
         renderer.request(_camera(fov))
     renderer.request(_camera(0.5))  # and the last one again, as it does
@@ -312,8 +323,8 @@ def test_in_headless_chromium_the_page_shows_the_cameras_and_the_live_render(run
         assert browser.wait_for(BACKGROUND_JS, timeout=60.0)[0] > 0
         browser.evaluate(WATCH_MESSAGES_JS)  # a move: the page sends the camera, a frame of it comes back
         moved = browser.evaluate("(() => { window.__viserMutable.cameraControl.rotate(0.3, 0.0, false); return Date.now(); })()")
-        got = browser.wait_for(f"window.__imageReceived.filter(e => e >= {moved}).length", timeout=60.0)
-        assert got >= 1 and browser.evaluate(f"window.__cameraSent.filter(e => e >= {moved}).length") >= 1
+        sent = browser.wait_for(f"window.__cameraSent.filter(e => e >= {moved})[0] || null", timeout=60.0)
+        assert browser.wait_for(f"window.__imageReceived.filter(e => e >= {sent}).length", timeout=60.0) >= 1
         client = next(iter(viewer.server.get_clients().values()))
         viewer.add_keyframe_from(client)
         viewer.add_keyframe(Keyframe(viewer.keyframes[0].world_from_cam.clone(), 0.9, 1.0))

@@ -10,16 +10,18 @@ its time) while training is watched. Each camera is rendered as
    first level's width (the first answer to a move; the time the camera moved to the time the image is
    ready is its latency);
 2. then, once no new camera came for ``settle`` seconds, each finer level (``levels``, as fractions of
-   ``max_size`` on the longer side) in **strips** of rows that take about ``strip_seconds`` each, each
-   strip one unit of work, so a new camera interrupts a refinement within one strip.
+   ``max_size`` on the longer side) in **strips** of rows that take about ``strip_seconds`` each (sized at
+   the rate the strip above rendered), each strip one unit of work, so a new camera interrupts a
+   refinement within one strip.
 
 While the camera moves only low frames are made, each of the newest camera (a camera that arrives while
 a unit runs replaces the one waiting; the same camera sent twice, as the browser does, is rendered once).
 The refinement also leaves the CPU to the browser: it waits ``settle`` after a move (the page shows the
-low frame meanwhile) and then renders at most ``refine_share`` of the time (it rests after each strip;
-a new camera is served at once). Measured on colmap_mouse with headless Chromium on the same two cores
-(load 4-5), a refinement rendering without rest kept the page from sending a moved camera for 0.06-1.3 s,
-and with half the time 1 ms; move to low frame shown 0.50-1.87 s against 0.22-0.44 s
+low frame meanwhile) and then, while other processes keep half a CPU or more busy (:class:`OtherLoad`: a
+browser drawing on the same machine, other work), renders at most ``refine_share`` of the time (it rests
+after each strip; a new camera is served at once). Measured on colmap_mouse with headless Chromium on the
+same two cores (load 4-5), a refinement rendering without rest kept the page from sending a moved camera
+for 0.06-1.3 s, and with half the time 1 ms; move to low frame shown 0.50-1.87 s against 0.22-0.44 s
 (``python -m benchmarks.viewer_bench``, README).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
@@ -30,6 +32,7 @@ that camera, strip by strip.
 
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -174,6 +177,44 @@ class RenderCost:
         return max(seconds - self.overhead, 0.1 * seconds) * self.rate
 
 
+def others_busy(before: "tuple[float, float, float]", after: "tuple[float, float, float]", cpus: int) -> float:
+    """CPUs that other processes kept busy between two :func:`cpu_sample` s: the machine's busy CPUs less
+    this process's.
+
+    Example:
+        >>> others_busy((1000.0, 400.0, 500.0), (1400.0, 500.0, 550.0), cpus=2)  # 1.5 CPUs busy, 0.25 of them ours
+        1.25
+    """
+    total, idle, own = (a - b for a, b in zip(after, before))
+    return max(0.0, cpus * (total - idle - own) / total) if total > 0 else 0.0
+
+
+def cpu_sample() -> "tuple[float, float, float] | None":
+    """``(ticks of all CPUs, their idle ticks, this process's CPU time in ticks)`` now (Linux), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:8]]
+    except (OSError, ValueError):
+        return None
+    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    return float(sum(fields)), float(fields[3] + fields[4]), time.process_time() * hz
+
+
+class OtherLoad:
+    """Whether other processes want the CPUs (a browser drawing on the same machine, other work): at least
+    ``threshold`` CPUs busy that are not this process's, since the last call (measured from ``/proc/stat``;
+    elsewhere never)."""
+
+    def __init__(self, threshold: float = 0.5) -> None:
+        self.threshold, self.cpus = threshold, os.cpu_count() or 1
+        self._last = cpu_sample()
+
+    def __call__(self) -> bool:
+        now = cpu_sample()
+        before, self._last = self._last, now
+        return now is not None and before is not None and others_busy(before, now, self.cpus) >= self.threshold
+
+
 def same_camera(a: ViewRequest, b: "ViewRequest | None") -> bool:
     """Whether two requests ask for the same image (the browser sends a camera again when nothing moved)."""
     return (
@@ -197,8 +238,10 @@ class ProgressiveRenderer:
         low_seconds: the time the low frame should take.
         strip_seconds: the time one unit of refinement work (a strip) should take: a move waits at most this long.
         settle: seconds without a new camera before the refinement starts.
-        refine_share: the most of the time the refinement renders: after a strip of ``t`` seconds it rests
-            ``t * (1 / refine_share - 1)`` (a new camera is served at once all the same).
+        refine_share: the most of the time the refinement renders while ``contended``: after a strip of
+            ``t`` seconds it rests ``t * (1 / refine_share - 1)`` (a new camera is served at once all the same).
+        contended: whether other processes want the CPU, asked after each strip (default :class:`OtherLoad`:
+            half a CPU or more busy besides this process).
         clock: the time in seconds (``time.perf_counter``; tests pass their own).
     """
 
@@ -212,11 +255,12 @@ class ProgressiveRenderer:
         strip_seconds: float = 0.05,
         settle: float = 0.35,
         refine_share: float = 0.5,
+        contended: "Callable[[], bool] | None" = None,
         clock: "Callable[[], float]" = time.perf_counter,
     ) -> None:
         self.render, self.show, self.clock = render, show, clock
         self.max_size, self.levels, self.low_seconds, self.strip_seconds, self.settle = max_size, levels, low_seconds, strip_seconds, settle
-        self.refine_share = refine_share
+        self.refine_share, self.contended = refine_share, contended if contended is not None else OtherLoad()
         self.mode = "rgb"
         """``rgb`` or ``depth``: what :attr:`Frame.image` shows."""
         self.cost = RenderCost()
@@ -332,14 +376,18 @@ class ProgressiveRenderer:
         req = job["req"]
         w, h = job["levels"][job["level"] - 1]
         job.update(cams=pinhole_camera(req.world_from_cam, req.fov, w, h), parts=[], row=0, seconds=0.0)
+        job.pop("rate", None)
 
     def _strip(self) -> None:
         job = self._job
         cams = job["cams"]
         w, h = int(cams.width[0]), int(cams.height[0])
-        rows = max(1, min(h - job["row"], int(self.cost.pixels(self.strip_seconds)) // w))
+        # rows at the rate of the strip above (rows through the object cost more than rows of sky), the view's at first
+        budget = max(self.strip_seconds - self.cost.overhead, 0.1 * self.strip_seconds)
+        rows = max(1, min(h - job["row"], int(budget * job.get("rate", self.cost.rate)) // w))
         view, seconds = self._timed(strip_camera(cams, job["row"], rows))
-        self._rested = self.clock() + seconds * (1.0 / self.refine_share - 1.0)
+        job["rate"] = w * rows / max(seconds - self.cost.overhead, 0.1 * seconds)
+        self._rested = self.clock() + (seconds * (1.0 / self.refine_share - 1.0) if self.contended() else 0.0)
         job["parts"].append(view)
         job["row"] += rows
         job["seconds"] += seconds
@@ -387,4 +435,4 @@ class RenderThread:
                 self._wake.clear()
 
 
-__all__ = ["Frame", "ProgressiveRenderer", "RenderCost", "RenderThread", "ViewRequest", "pinhole_camera", "same_camera", "strip_camera"]
+__all__ = ["Frame", "OtherLoad", "ProgressiveRenderer", "RenderCost", "RenderThread", "ViewRequest", "cpu_sample", "others_busy", "pinhole_camera", "same_camera", "strip_camera"]
