@@ -20,9 +20,9 @@ The refinement also leaves the CPU to the browser: it waits ``settle`` after a m
 low frame meanwhile) and then, while other processes keep half a CPU or more busy (:class:`OtherLoad`: a
 browser drawing on the same machine, other work), renders at most ``refine_share`` of the time (it rests
 after each strip; a new camera is served at once). Measured on colmap_mouse with headless Chromium on the
-same two cores (load 4-5), a refinement rendering without rest kept the page from sending a moved camera
-for 0.06-1.3 s, and with half the time 1 ms; move to low frame shown 0.50-1.87 s against 0.22-0.44 s
-(``python -m benchmarks.viewer_bench``, README).
+same two cores (load 4-5; a viewer in-process, timed by the page's clock), a refinement rendering without
+rest kept the page from sending a moved camera for 0.06-1.3 s, and with half the time 1 ms; move to low
+frame shown 0.50-1.87 s against 0.22-0.44 s (README, viewer rows).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
 height cut to the strip (:func:`strip_camera`), rendered by the one renderer
