@@ -338,3 +338,33 @@ def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own
                      cam_idx=held_out.cam_idx.reshape(32, 32), z_scale=held_out.z_scale.reshape(32, 32))
     assert appearance_fitted_psnr(plain, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) is None
     assert appearance_fitted_psnr(model, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) > 25.0
+
+
+def test_pose_corrections_rotate_rays_about_their_camera_and_stay_zero_mean():
+    """Camera refinement: each image's correction rotates its rays' directions about the camera centre
+    (Rodrigues' formula as the reference) and moves their origins, after the mean correction over the images
+    is removed (the frame of the held-out views stays put); zero corrections leave the rays alone, and the
+    corrections learn from the colour loss."""
+    model = _model(pose_refine=True)
+    model.train()
+    rays = _rays(64, 3)
+    same = model._refined(rays)
+    torch.testing.assert_close(same.origins, rays.origins)
+    torch.testing.assert_close(same.directions, rays.directions)
+    with torch.no_grad():
+        model.pose_deltas.copy_(torch.randn(4, 6, generator=torch.Generator().manual_seed(2)) * 0.1)
+    got = model._refined(rays)
+    delta = model.pose_deltas.detach() - model.pose_deltas.detach().mean(0)
+    for i in range(64):
+        w, t = delta[rays.cam_idx[i], :3], delta[rays.cam_idx[i], 3:]
+        theta, k, v = w.norm(), w / w.norm(), rays.directions[i]
+        rodrigues = v * theta.cos() + torch.linalg.cross(k, v) * theta.sin() + k * (k @ v) * (1 - theta.cos())
+        torch.testing.assert_close(got.directions[i], rodrigues, atol=1e-5, rtol=0)
+        torch.testing.assert_close(got.origins[i], rays.origins[i] + t)
+    shifted = model.pose_deltas.detach() + torch.tensor([0.3, -0.2, 0.1, 1.0, 2.0, 3.0])  # the same for every image
+    with torch.no_grad():
+        model.pose_deltas.copy_(shifted)
+    torch.testing.assert_close(model._refined(rays).directions, got.directions, atol=1e-6, rtol=0)
+    out = model.get_outputs(rays, torch.zeros(64, 3))
+    out.rgb.sum().backward()
+    assert float(model.pose_deltas.grad.abs().sum()) > 0
