@@ -23,7 +23,7 @@ def demo_configs(train_seconds: float, mesh_resolution: int = 256, frames: int =
 
 
 def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_seconds: float = 90.0, views: int = 48, seed: int = 0, device: str = "auto") -> int:
-    """Generate the default synthetic scene, then run sfm, load, check, train, render, mesh, export, report on it.
+    """Generate the default synthetic scene, then run the default chain on it (sfm, load, check, train, mesh, render, export, report).
 
     Prints the stage table, the validation PSNR, the mesh F-score@1% and Chamfer-L1 against the
     scene's gt_mesh.ply, and the path of report.html.

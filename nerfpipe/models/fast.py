@@ -204,7 +204,9 @@ class FastConfig:
     steps, TSDF mesh of 16 views, 0.01 / 0.006 gave free-space violation 0.085 / 0.021, points near the mesh
     0.963 / 0.956 and val PSNR 24.29 / 24.25 dB (with the 10% region margin of before: 0.045 / 0.016)."""
     distortion_weight: float = 0.0
-    """Weight of the distortion loss (keeps empty space empty; 0 = off)."""
+    """Weight of the distortion loss (keeps empty space empty; 0 = off). On photos_sacre_coeur after 400 steps
+    0 / 0.003 / 0.03 gave 14.84 / 14.75 / 14.78 dB on held-out right halves (appearance fitted) with 20.4 /
+    17.8 / 11.2 samples per ray: fewer samples, the same fog."""
     tv_weight: float = 0.0
     """Weight of total variation on the finest density grid (0 = off)."""
 
