@@ -65,8 +65,9 @@ def eval_run(
         print(_json.dumps(result, indent=2))
     else:
         lp = f", LPIPS {result['lpips']:.4f}" if result["lpips"] is not None else f" (no LPIPS: {lpips_note})"
+        fitted = "" if result["psnr_appearance_fitted"] is None else f" ({result['psnr_appearance_fitted']:.2f} dB on right halves, appearance fitted on left halves)"
         print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
-              f"PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
+              f"PSNR {result['psnr']:.2f} dB{fitted}, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
     return 0
 
 
