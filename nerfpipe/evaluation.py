@@ -110,11 +110,12 @@ def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int
     collections); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
     half = rays.shape[1] // 2
     gt = gt.to(rays.origins)
-    with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background.to(gt)) as fitted:
+    background = background.to(gt)
+    with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background) as fitted:
         if not fitted:
             return None
         with torch.no_grad():
-            rgb = render_rays(model, rays[:, half:].reshape(-1), background.to(gt), chunk)[0].clamp(0, 1)
+            rgb = render_rays(model, rays[:, half:].reshape(-1), background, chunk)[0].clamp(0, 1)
     return psnr_from_mse(float(((rgb - gt[:, half:].reshape(-1, 3)) ** 2).mean()))
 
 
@@ -140,7 +141,8 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         if i and deadline is not None and time.monotonic() > deadline:
             break
         start = time.perf_counter()
-        view = render_cameras(model, resize_cameras(cams[i : i + 1], w, h).to(device), chunk, background)[0]
+        cam = resize_cameras(cams[i : i + 1], w, h).to(device)
+        view = render_cameras(model, cam, chunk, background)[0]
         out["seconds"] += time.perf_counter() - start
         out["pixels"] += w * h
         gt = ground_truth(scene, idx[i], background, (w, h))
@@ -149,8 +151,7 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         out["ssim"].append(s)
         out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
         if fit_appearance:
-            rays = camera_rays(resize_cameras(cams[i : i + 1], w, h).to(device), 0)
-            fitted = appearance_fitted_psnr(model, rays, gt, background, chunk)
+            fitted = appearance_fitted_psnr(model, camera_rays(cam, 0), gt, background, chunk)
             if fitted is not None:
                 out["appearance_fitted_psnr"].append(fitted)
         if lpips is not None:

@@ -97,27 +97,31 @@ def choose_omp_wait_policy(environ: "dict | None" = None, busy: "float | None" =
     return "spin"
 
 
+def cpu_ticks() -> "tuple[int, int] | None":
+    """``(ticks of all CPUs, their idle and iowait ticks)`` since boot, from ``/proc/stat`` (Linux), or None.
+
+    The total is user through steal: the guest fields are already counted in user."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
+    return sum(fields), idle
+
+
 def busy_cpus(seconds: float = 0.05) -> float:
     """CPUs in use over the next ``seconds`` (from ``/proc/stat``; elsewhere the 1-minute load average)."""
     import time
 
-    def ticks() -> "tuple[int, int] | None":
-        try:
-            with open("/proc/stat") as f:
-                fields = [int(v) for v in f.readline().split()[1:]]
-        except (OSError, ValueError):
-            return None
-        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
-        return sum(fields), idle
-
     def load_average() -> float:
         return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
 
-    first = ticks()
+    first = cpu_ticks()
     if first is None:
         return load_average()
     time.sleep(seconds)
-    second = ticks()
+    second = cpu_ticks()
     total, idle = (second[0] - first[0], second[1] - first[1]) if second is not None else (0, 0)
     if total <= 0:  # no tick counted in the window (a container's /proc/stat can lag under load): no measurement
         return load_average()

@@ -398,8 +398,9 @@ class FastModel(Model):
             yield False
             return
         flat, target = rays.reshape(-1), rgb.reshape(-1, 3).to(rays.origins)
-        codes = 12 + (0 if self.image_codes is None else self.image_codes.shape[1])
-        vec = torch.zeros(codes, device=flat.device, requires_grad=True)
+        background = background.to(target)
+        size = 12 + (0 if self.image_codes is None else self.image_codes.shape[1])  # the correction, then the code
+        vec = torch.zeros(size, device=flat.device, requires_grad=True)
         opt = torch.optim.Adam([vec], lr=0.02)
         frozen = [p for p in self.parameters() if p.requires_grad]
         gen = torch.Generator(device=flat.device).manual_seed(0)
@@ -412,7 +413,7 @@ class FastModel(Model):
             with torch.enable_grad():
                 for _ in range(self.cfg.appearance_fit_steps):
                     i = torch.randint(len(flat), (min(2048, len(flat)),), generator=gen, device=flat.device)
-                    out = self.get_outputs(flat[i], background.to(target).expand(len(i), 3))
+                    out = self.get_outputs(flat[i], background.expand(len(i), 3))
                     loss = torch.mean((out.rgb - target[i]) ** 2)
                     opt.zero_grad(set_to_none=True)
                     loss.backward()

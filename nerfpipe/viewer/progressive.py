@@ -44,6 +44,7 @@ import torch
 
 from nerfpipe.cameras import Cameras
 from nerfpipe.render import RenderedView, to_uint8
+from nerfpipe.runtime import cpu_ticks
 
 
 @dataclass(frozen=True)
@@ -191,13 +192,11 @@ def others_busy(before: "tuple[float, float, float]", after: "tuple[float, float
 
 def cpu_sample() -> "tuple[float, float, float] | None":
     """``(ticks of all CPUs, their idle ticks, this process's CPU time in ticks)`` now (Linux), or None."""
-    try:
-        with open("/proc/stat") as f:
-            fields = [int(v) for v in f.readline().split()[1:8]]
-    except (OSError, ValueError):
+    ticks = cpu_ticks()
+    if ticks is None:
         return None
     hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    return float(sum(fields)), float(fields[3] + fields[4]), time.process_time() * hz
+    return float(ticks[0]), float(ticks[1]), time.process_time() * hz
 
 
 class OtherLoad:
