@@ -89,3 +89,47 @@ def test_another_pipelines_reconstruction_is_handed_over(photos, tmp_path):
     centres = np.stack([by_name[p.name].projection_center() for p in scene.images.paths])
     norm = scene.world_from_input
     assert np.allclose(norm.apply_points(torch.from_numpy(centres)).numpy(), scene.cameras.centers.numpy(), atol=1e-4)
+
+
+def test_photos_of_two_sizes_get_one_camera_per_size_and_keep_their_names(scene_path, tmp_path):
+    from nerfpipe.plugins.sfm import flatten_names, group_photos
+
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    names = ["a.jpg", "b.jpg", "c.jpg"]
+    for n in names:
+        (flat / n).write_bytes(b"")
+    group_photos(flat, names, [(40, 30, ""), (30, 40, ""), (40, 30, "Pixel 7")], tmp_path / "grouped")
+    folders = {p.name: sorted(q.name for q in p.iterdir()) for p in (tmp_path / "grouped").iterdir()}
+    assert folders == {"40x30": ["a.jpg"], "30x40": ["b.jpg"], "40x30-Pixel_7": ["c.jpg"]}
+
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(scene_path("colmap_mouse") / "sparse" / "0"))  # COLMAP's names carry the folders
+    names = {i: im.name for i, im in rec.images.items()}
+    for im in rec.images.values():
+        im.name = f"1920x1440/{im.name}"
+    flatten_names(rec)
+    assert {i: im.name for i, im in rec.images.items()} == names
+
+
+
+def test_failed_registrations_are_dropped_with_their_lone_points(scene_path):
+    """colmap_mouse's model with one camera moved 1,000x away and one given a bogus focal length."""
+    import pycolmap
+
+    from nerfpipe.plugins.sfm import drop_failed_registrations
+
+    rec = pycolmap.Reconstruction(str(scene_path("colmap_mouse") / "sparse" / "0"))
+    assert drop_failed_registrations(rec, 20.0) == []  # a good model loses nothing
+    ids = sorted(rec.reg_image_ids())
+    far, bogus = rec.image(ids[0]), rec.image(ids[1])
+    pose = far.cam_from_world()
+    pose.translation = pose.translation * 1000.0
+    rec.frame(far.frame_id).rig_from_world = pose
+    bogus.camera.params = np.array(bogus.camera.params) * np.array([100.0, 100.0, 1.0, 1.0])  # fx, fy 100x
+    before = rec.num_reg_images()
+    assert drop_failed_registrations(rec, 20.0) == sorted([far.name, bogus.name])
+    assert rec.num_reg_images() == before - 2
+    assert all(p.track.length() >= 2 for p in rec.points3D.values())
+    assert all(e.image_id not in (ids[0], ids[1]) for p in rec.points3D.values() for e in p.track.elements)
