@@ -86,8 +86,16 @@ def _photos(folder: Path) -> "list[Path]":
     return sorted(resolve_inside(folder, p.name) for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
 
 
+def camera_tag(exif) -> str:
+    """The camera a photo's EXIF names: its model and, when given, its focal length (a zoom setting is
+    another camera); empty without EXIF."""
+    model = str(exif.get(0x0110, "")).strip()  # Model
+    focal = exif.get_ifd(0x8769).get(0x920A)  # Exif IFD: FocalLength
+    return f"{model} {float(focal):g}mm".strip() if focal else model
+
+
 def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tuple[int, int, str]]":
-    """Downscale (or link) the photos into ``out``; return ``(width, height, EXIF model)`` per photo."""
+    """Downscale (or link) the photos into ``out``; return ``(width, height, EXIF camera tag)`` per photo."""
     from PIL import Image
 
     out.mkdir(parents=True, exist_ok=True)
@@ -97,7 +105,7 @@ def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tupl
         scale = max_size / max(w, h) if max_size > 0 else 1.0
         size = (round(w * scale), round(h * scale)) if scale < 1.0 else None
         with open_image(p, draft=size) as im:  # decoded here, so a broken photo is one line naming it
-            model = str(im.getexif().get(0x0110, ""))  # EXIF 'Model'
+            model = camera_tag(im.getexif())
             if size is None:
                 (out / p.name).symlink_to(p.resolve())
                 info.append((w, h, model))
