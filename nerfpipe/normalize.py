@@ -2,7 +2,7 @@
 
 Real captures (COLMAP, instant-ngp, nerfstudio) come in arbitrary position, orientation and
 scale. :func:`auto_normalization` computes the :class:`~nerfpipe.scene.Similarity` that puts the
-scene centre at the origin, the average camera "up" on +z, and the cameras at a mean distance
+scene centre at the origin, the world's up (:func:`upright_direction`) on +z, and the cameras at a mean distance
 of :data:`TARGET_CAMERA_DISTANCE` from the centre (the distance of the Blender synthetic scenes,
 so that default bounds and step sizes carry over). Synthetic Blender scenes keep their frame.
 """
@@ -42,10 +42,37 @@ def rotation_to_z(up: Float[Tensor, "3"]) -> Float[Tensor, "3 3"]:
     return torch.eye(3, dtype=torch.float64) + vx + vx @ vx * (1 / (1 + c))
 
 
+UPRIGHT_MAX_TILT = 45.0
+"""Degrees between :func:`upright_direction`'s estimate and the mean image-up beyond which the estimate is not trusted."""
+
+
+def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
+    """World up (unit, float64) from how photographs are taken: upright, without roll, so every camera's
+    right axis (+x) is horizontal, whatever it looks at. Up is the direction most orthogonal to all right
+    axes (the least eigenvector of their scatter), turned towards the mean image-up (-y).
+
+    The mean image-up alone tilts with the views: a camera looking down at a table has its image-up along
+    the table. On colmap_mouse the table's normal lies 2.9 degrees from this estimate and 7.5 from the mean
+    image-up; on 23 of its photos 3.9 and 9.4; on photos_sceaux_castle's ground 2.3 and 6.7.
+    Where the right axes do not decide (cameras all facing one way: only a facade) or the estimate strays
+    more than :data:`UPRIGHT_MAX_TILT` from the mean image-up, the mean image-up without its component
+    along the right axes is used (and the mean image-up itself when that vanishes).
+    """
+    mean_up = cameras.up.double().reshape(-1, 3).mean(0)
+    right = torch.nn.functional.normalize(cameras.world_from_cam[..., :3, 0].double().reshape(-1, 3), dim=-1)
+    values, vectors = torch.linalg.eigh(right.T @ right / len(right))
+    least = vectors[:, 0] * (1.0 if float(vectors[:, 0] @ mean_up) >= 0 else -1.0)
+    cos = float(least @ mean_up) / max(float(mean_up.norm()), 1e-12)
+    if values[1] > 0.02 and values[0] < 0.25 * values[1] and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
+        return least
+    plane = vectors[:, :2] @ vectors[:, :2].T @ mean_up
+    return plane / plane.norm() if plane.norm() > 1e-6 else mean_up / mean_up.norm().clamp_min(1e-12)
+
+
 def auto_normalization(cameras: Cameras, center: "Float[Tensor, '3'] | None" = None) -> Similarity:
-    """Similarity that centres the scene, turns the mean camera up (-y) to +z, and scales."""
+    """Similarity that centres the scene, turns the world's up (:func:`upright_direction`) to +z, and scales."""
     center = focus_point(cameras) if center is None else center.double()
-    up = cameras.up.double().reshape(-1, 3).mean(0)
+    up = upright_direction(cameras)
     rot = rotation_to_z(up) if up.norm() > 1e-6 else torch.eye(3, dtype=torch.float64)
     dist = (cameras.centers.double().reshape(-1, 3) - center).norm(dim=-1).mean()
     scale = TARGET_CAMERA_DISTANCE / float(dist) if float(dist) > 0 else 1.0

@@ -10,7 +10,7 @@ from scipy.optimize import fsolve
 import nerfpipe
 from nerfpipe import Cameras, Distortion, Similarity, camera_rays, generate_rays, invert_rigid, opengl_to_opencv, pixel_centers
 from nerfpipe.functional.distortion import distort_opencv
-from nerfpipe.normalize import TARGET_CAMERA_DISTANCE, auto_normalization, bounds_from_cameras, focus_point, rotation_to_z
+from nerfpipe.normalize import TARGET_CAMERA_DISTANCE, auto_normalization, bounds_from_cameras, focus_point, rotation_to_z, upright_direction
 
 
 def random_rotation(gen, dtype=torch.float64):
@@ -168,6 +168,27 @@ def test_auto_normalization_centres_scales_and_uprights():
     near, far, aabb = bounds_from_cameras(new)
     assert 0 < near < TARGET_CAMERA_DISTANCE < far
     assert torch.all(aabb[0] < 0) and torch.all(aabb[1] > 0)
+
+
+def _angle(a, b) -> float:
+    return math.degrees(math.acos(min(1.0, float(a @ b) / float(a.norm() * b.norm()))))
+
+
+def test_upright_direction_is_the_normal_of_the_right_axes_not_the_mean_image_up():
+    """Half a ring of upright cameras looking down at a table (50-70 degrees up) in a tilted world: their
+    image-ups lean over the table, their right axes stay horizontal."""
+    true_up = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    tilt = Similarity(rotation_to_z(true_up).T, torch.zeros(3, dtype=torch.float64), 1.0)
+    ring = [look_at((3 * math.cos(e) * math.cos(a), 3 * math.cos(e) * math.sin(a), 3 * math.sin(e)))
+            for a, e in zip(np.linspace(0, math.pi, 9), np.radians(np.linspace(50, 70, 9)))]
+    cams = Cameras.create(tilt.apply_world_from_cam(torch.stack(ring)), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)
+    assert _angle(cams.up.mean(0), true_up) > 15  # what the mean image-up gives
+    assert _angle(upright_direction(cams), true_up) < 1e-6
+
+    # cameras all facing one way (a facade): the right axes decide nothing along the views; the mean image-up stays
+    facade = [look_at((x, -5.0, 1.0), target=(x, 0.0, 1.5)) for x in np.linspace(-2, 2, 5)]
+    cams = Cameras.create(torch.stack(facade), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)
+    torch.testing.assert_close(upright_direction(cams), torch.nn.functional.normalize(cams.up.mean(0), dim=0))
 
 
 def test_camera_rays_equals_generate_rays():

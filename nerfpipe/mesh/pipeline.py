@@ -25,6 +25,7 @@ from nerfpipe.mesh.clean import (
 )
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
+from nerfpipe.normalize import upright_direction
 from nerfpipe.mesh.export import to_input_frame, write_ply
 from nerfpipe.mesh.extract import DensityFn, OccupancyFn, Volume, auto_level, level_from_surface_points, mesh_volume, sample_volume
 from nerfpipe.mesh.level import choose_level
@@ -284,7 +285,7 @@ def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfi
     centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
     samples, normals = sample_surface(mesh, 20_000)
     candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
-    up = cameras.up.double().reshape(-1, 3).mean(0).cpu().numpy()
+    up = upright_direction(cameras.to("cpu")).numpy()
     plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=cfg.support_min_share, up=up,
                           max_tilt_deg=cfg.support_max_tilt, max_angle_deg=cfg.support_max_angle)
     figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
