@@ -133,3 +133,29 @@ def test_failed_registrations_are_dropped_with_their_lone_points(scene_path):
     assert rec.num_reg_images() == before - 2
     assert all(p.track.length() >= 2 for p in rec.points3D.values())
     assert all(e.image_id not in (ids[0], ids[1]) for p in rec.points3D.values() for e in p.track.elements)
+
+
+def test_a_sideways_stored_portrait_photo_is_turned_upright_for_sfm(tmp_path):
+    """A phone's portrait photo: landscape pixels and EXIF orientation 6 (turn 90 degrees clockwise to view)."""
+    from PIL import Image
+
+    from nerfpipe.image_file import read_image_uint8
+    from nerfpipe.plugins.sfm import prepare_images
+
+    upright = np.zeros((60, 40, 3), np.uint8)  # what the user sees: 40 wide, 60 high, red on top
+    upright[:20, :, 0] = 255
+    stored = Image.fromarray(np.ascontiguousarray(np.rot90(upright, k=1)))  # 90 degrees counter-clockwise
+    exif = Image.Exif()
+    exif[0x0112], exif[0x0110] = 6, "Phone"
+    (tmp_path / "in").mkdir()
+    stored.save(tmp_path / "in" / "p.jpg", quality=95, exif=exif.tobytes())
+    for max_size, shape in ((0, (60, 40)), (30, (30, 20))):
+        out = tmp_path / f"out{max_size}"
+        (info,) = prepare_images([tmp_path / "in" / "p.jpg"], out, max_size)
+        assert info == (shape[1], shape[0], "Phone")
+        pixels = read_image_uint8(out / "p.jpg")
+        assert pixels.shape[:2] == shape
+        top, bottom = pixels[: shape[0] // 4].mean(axis=(0, 1)), pixels[-shape[0] // 4 :].mean(axis=(0, 1))
+        assert top[0] > 200 and bottom[0] < 50  # red on top, as the user sees it
+        with Image.open(out / "p.jpg") as im:
+            assert im.getexif().get(0x0112, 1) == 1  # no second turn by a viewer

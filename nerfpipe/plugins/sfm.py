@@ -95,8 +95,10 @@ def camera_tag(exif) -> str:
 
 
 def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tuple[int, int, str]]":
-    """Downscale (or link) the photos into ``out``; return ``(width, height, EXIF camera tag)`` per photo."""
-    from PIL import Image
+    """Downscale (or link) the photos into ``out``, turned upright as their EXIF orientation says (a phone's
+    portrait photo is stored sideways with a tag that only viewers apply; COLMAP would see it sideways, and
+    the world's up is taken from upright photos); return ``(width, height, EXIF camera tag)`` per photo."""
+    from PIL import Image, ImageOps
 
     out.mkdir(parents=True, exist_ok=True)
     info = []
@@ -105,13 +107,17 @@ def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tupl
         scale = max_size / max(w, h) if max_size > 0 else 1.0
         size = (round(w * scale), round(h * scale)) if scale < 1.0 else None
         with open_image(p, draft=size) as im:  # decoded here, so a broken photo is one line naming it
-            model = camera_tag(im.getexif())
-            if size is None:
+            exif = im.getexif()
+            model, orientation = camera_tag(exif), exif.get(0x0112, 1)
+            if size is None and orientation in (0, 1):
                 (out / p.name).symlink_to(p.resolve())
                 info.append((w, h, model))
                 continue
-            small = im.convert("RGB").resize(size, Image.LANCZOS)
-            small.save(out / p.name, quality=95, exif=im.info.get("exif", b""))
+            small = ImageOps.exif_transpose(im).convert("RGB")
+            if size is not None:
+                small = small.resize(size[::-1] if orientation in (5, 6, 7, 8) else size, Image.LANCZOS)
+            exif[0x0112] = 1
+            small.save(out / p.name, quality=95, exif=exif.tobytes())
             info.append((*small.size, model))
     return info
 
