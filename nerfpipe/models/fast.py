@@ -209,9 +209,6 @@ class FastConfig:
     17.8 / 11.2 samples per ray: fewer samples, the same fog."""
     tv_weight: float = 0.0
     """Weight of total variation on the finest density grid (0 = off)."""
-    opacity_entropy_weight: float = 0.0
-    """Weight of the binary entropy of each ray's opacity in the object region (pushes rays to pass through
-    it or stop in it, not to cross fog; 0 = off)."""
 
     def __post_init__(self) -> None:
         if self.preset != "auto" and self.preset not in PRESETS:  # checked when configured, not when training starts
@@ -360,9 +357,6 @@ class FastModel(Model):
             self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
         if self.training and self.cfg.depth_weight > 0:
             extras.update(weights=weights, t_mids=t_mids, ray_indices=samples.ray_indices, t_exit=t_exit)
-        if self.training and self.cfg.opacity_entropy_weight > 0:
-            a = acc.clamp(1e-4, 1.0 - 1e-4)
-            extras["opacity_entropy"] = -(a * a.log() + (1.0 - a) * (1.0 - a).log()).mean()
         if self.training and self.cfg.distortion_weight > 0:
             extras["distortion"] = distortion_loss_packed(
                 weights, samples.t_starts, samples.t_ends, samples.ray_indices, len(flat)
@@ -474,8 +468,6 @@ class FastModel(Model):
             losses["depth"] = self.cfg.depth_weight * self._depth_loss(outputs.extras, target_depth.reshape(-1))
         if "distortion" in outputs.extras:
             losses["distortion"] = self.cfg.distortion_weight * outputs.extras["distortion"]
-        if "opacity_entropy" in outputs.extras:
-            losses["opacity_entropy"] = self.cfg.opacity_entropy_weight * outputs.extras["opacity_entropy"]
         if "behind_distortion" in outputs.extras:
             losses["behind_distortion"] = self.cfg.behind.distortion_weight * outputs.extras["behind_distortion"]
         if "behind_proposal" in outputs.extras:
