@@ -1,4 +1,4 @@
-"""Seconds to allocate a grid-sized gradient, with and without :func:`nerfpipe.runtime.keep_freed_memory`.
+"""Seconds to allocate a grid-sized gradient, with and without :func:`nerfpipe.util.runtime.keep_freed_memory`.
 
 Run: ``python -m benchmarks.alloc_speed`` (each setting in a fresh interpreter, since the allocator
 settings are process-wide).
@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 CODE = """
-from nerfpipe import runtime
+from nerfpipe.util import runtime
 runtime.keep_freed_memory()  # follows NERFPIPE_KEEP_FREED_MEMORY
 import time, torch
 torch.zeros(2097152, 4)

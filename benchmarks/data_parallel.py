@@ -25,8 +25,8 @@ import torch
 
 def model_sizes(path: str, preset: "str | None") -> dict:
     from nerfpipe.data_adapters import load
-    from nerfpipe.trainer import scene_info
     from nerfpipe.plugins.train import model_config
+    from nerfpipe.training.trainer import scene_info
 
     model = model_config("fast", {"preset": preset} if preset else {}).setup(scene_info(load(path)))
     params = [p for g in model.param_groups() for p in g["params"]]
@@ -45,8 +45,8 @@ def step_split(path: str, preset: "str | None", rays: int, steps: int) -> dict:
     optimiser's step alone (the part every rank repeats whatever its share of the rays): what the
     ray-proportional part of a step is, on this machine."""
     from nerfpipe.data_adapters import load
-    from nerfpipe.trainer import Trainer, TrainerConfig
     from nerfpipe.plugins.train import model_config
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
 
     scene, out = load(path), {}
     for n in (rays, rays // 2):

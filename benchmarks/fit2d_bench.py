@@ -8,7 +8,7 @@ because wall-clock time is inflated on a shared machine.
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
-    from nerfpipe import runtime
+    from nerfpipe.util import runtime
 
     runtime.apply()
 

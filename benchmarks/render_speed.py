@@ -6,7 +6,7 @@ For each mode (``reference``: the full density pass over every marched sample; `
 density pass in rounds that stop at opaque rays; ``early``: rounds, and each ray marched only over the
 span a coarser occupancy grid allows) it measures
 
-* seconds per frame of :func:`~nerfpipe.render.render_cameras` on the first val views, at each thread count,
+* seconds per frame of :func:`~nerfpipe.outputs.render.render_cameras` on the first val views, at each thread count,
 * samples the density-only pass evaluated per ray, and samples kept (shaded) per ray,
 * PSNR of the val views (all of them by default),
 * seconds per training step (the trainer's ``train_step`` on ``rays_per_step`` rays, from the checkpoint),
@@ -17,7 +17,7 @@ process CPU seconds. Prints a table and writes ``render_speed.json`` to ``--out`
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
-    from nerfpipe import runtime
+    from nerfpipe.util import runtime
 
     runtime.apply()
 
@@ -88,7 +88,7 @@ def set_mode(model, mode: str) -> None:
 
 
 def val_cameras(scene, n: int):
-    from nerfpipe.evaluation import eval_split
+    from nerfpipe.training.evaluation import eval_split
 
     idx = [int(i) for i in scene.splits[eval_split(scene)]]
     idx = idx[:n] if n else idx
@@ -103,7 +103,7 @@ def timed(fn):
 
 
 def frame_times(model, scene, cfg: RenderSpeedConfig) -> dict:
-    from nerfpipe.render import render_cameras
+    from nerfpipe.outputs.render import render_cameras
 
     _, cams = val_cameras(scene, cfg.frames)
     rows = {}
@@ -116,10 +116,9 @@ def frame_times(model, scene, cfg: RenderSpeedConfig) -> dict:
 
 
 def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> "tuple[dict, list]":
-    from nerfpipe.evaluation import ground_truth, score
-    from nerfpipe.pixel_sampler import background_colors
-    from nerfpipe.render import render_cameras
-    from nerfpipe.trainer import backgrounds
+    from nerfpipe.data.background import background_colors, backgrounds
+    from nerfpipe.outputs.render import render_cameras
+    from nerfpipe.training.evaluation import ground_truth, score
 
     idx, cams = val_cameras(scene, cfg.psnr_views)
     bg = background_colors(backgrounds(run_cfg["trainer"]["background"], scene.has_alpha)[1], 1)[0]
@@ -147,10 +146,10 @@ def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> 
 def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedConfig) -> dict:
     from nerfpipe.data_adapters import load
 
-    from nerfpipe.checkpoint import CHECKPOINT, load_checkpoint
     from nerfpipe.models.registry import get_model
-    from nerfpipe.runs import from_dict
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.training.checkpoint import CHECKPOINT, load_checkpoint
+    from nerfpipe.training.runs import from_dict
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
 
     scene = load(Path(run_cfg["data"]))
     model_cfg = from_dict(get_model(run_cfg["model"]).config, run_cfg["model_config"])
@@ -171,7 +170,7 @@ def train_step_time(run_dir: Path, run_cfg: dict, mode: str, cfg: RenderSpeedCon
 
 
 def measure(cfg: RenderSpeedConfig) -> dict:
-    from nerfpipe.runs import load_run, read_config
+    from nerfpipe.training.runs import load_run, read_config
 
     run_cfg = read_config(cfg.run_dir)
     scene, model, _ = load_run(cfg.run_dir)
@@ -193,7 +192,7 @@ def main(cfg: RenderSpeedConfig) -> dict:
     results = measure(cfg)
     print(json.dumps(results, indent=1))
     if cfg.out is not None:
-        from nerfpipe.runs import write_json
+        from nerfpipe.training.runs import write_json
 
         cfg.out.mkdir(parents=True, exist_ok=True)
         write_json(cfg.out / "render_speed.json", {"run_dir": str(cfg.run_dir), **results})

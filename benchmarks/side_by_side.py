@@ -9,7 +9,7 @@ and appends them to ``--log`` when given.
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
-    from nerfpipe import runtime
+    from nerfpipe.util import runtime
 
     runtime.apply()
 
@@ -64,8 +64,8 @@ def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...]]":
 def main(cfg: SideBySideConfig) -> "list[dict]":
     from nerfpipe.data_adapters import load
 
-    from nerfpipe import evaluation
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training import evaluation
+    from nerfpipe.training.trainer import Trainer
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)

@@ -8,7 +8,7 @@ Prints one JSON line per mark (step, cumulative training seconds, wall and CPU/t
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
-    from nerfpipe import runtime
+    from nerfpipe.util import runtime
 
     runtime.apply()
 
@@ -45,7 +45,7 @@ class StepsConfig:
     rays_per_step: int = 4096
     seed: int = 0
     counted_steps: int = 16
-    """Steps before each mark whose ATen ops and host syncs are counted (:mod:`nerfpipe.opcount`; timed with the rest)."""
+    """Steps before each mark whose ATen ops and host syncs are counted (:mod:`nerfpipe.training.opcount`; timed with the rest)."""
     name: str = ""
     """Label of the JSON lines (default: the options)."""
     log: "Path | None" = None
@@ -67,9 +67,11 @@ def model_config(preset: str, options: "tuple[str, ...]"):
 def main(cfg: StepsConfig) -> "list[dict]":
     from nerfpipe.data_adapters import load
 
-    from nerfpipe import evaluation, runtime
-    from nerfpipe.opcount import DispatchCounter
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training import evaluation
+
+    from nerfpipe.training.opcount import DispatchCounter
+    from nerfpipe.training.trainer import Trainer
+    from nerfpipe.util import runtime
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
@@ -100,7 +102,7 @@ def main(cfg: StepsConfig) -> "list[dict]":
 
 def trainer_config(cfg):
     """The trainer of an A/B run: no validation, video or checkpoint of its own (``cfg``: ``StepsConfig``-like)."""
-    from nerfpipe.trainer import TrainerConfig
+    from nerfpipe.training.trainer import TrainerConfig
 
     return TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
                          eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)

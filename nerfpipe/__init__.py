@@ -1,14 +1,20 @@
 """nerfpipe: posed photographs -> neural radiance field -> novel views, depth and meshes.
 
-Layers (lower never imports upper):
+The subpackages are the layers, lowest first; a lower one never imports a higher one
+(``tests/test_layers.py``):
 
-1. ``nerfpipe.functional``: pure tensor functions (distortion, rays, sampling, volume rendering);
-2. containers and modules: :class:`Cameras`, :class:`RayBundle`, :class:`SceneData`, fields;
-3. orchestration: ``nerfpipe.commands``, stages in ``nerfpipe.plugins``, the CLI.
+1. ``nerfpipe.util``: errors, atomic writes, path checks, configs as dicts, plugin discovery, devices;
+2. ``nerfpipe.functional``: pure tensor functions (distortion, sampling, volume rendering);
+3. ``nerfpipe.data``: containers and geometry (:class:`Cameras`, :class:`RayBundle`, :class:`SceneData`);
+4. modules: ``encoders``, ``fields``, ``estimators``, ``models`` (and ``data_adapters``, ``image_field``);
+5. ``nerfpipe.outputs`` (renders, videos, figures) and ``nerfpipe.mesh``;
+6. ``nerfpipe.training``: the trainer, evaluation, checkpoints, the run folder;
+7. ``nerfpipe.pipeline`` (stages, :class:`Pipeline`, the report) and ``nerfpipe.viewer``;
+8. ``nerfpipe.plugins`` (the built-in stages), ``nerfpipe.commands`` and the CLI.
 
 Importing nerfpipe changes nothing in the host process. The process settings the CLI makes
-(OpenMP waiting, glibc's allocator: :mod:`nerfpipe.runtime`) are one explicit call,
-``nerfpipe.runtime.apply()``, made before torch is imported. So that the CLI can make it, this
+(OpenMP waiting, glibc's allocator: :mod:`nerfpipe.util.runtime`) are one explicit call,
+``nerfpipe.util.runtime.apply()``, made before torch is imported. So that the CLI can make it, this
 package imports torch lazily: the names below load their module on first access (PEP 562).
 """
 
@@ -19,19 +25,23 @@ import zlib  # noqa: F401  (import-order guard, see above)
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    "Cameras": "nerfpipe.cameras",
+    "Cameras": "nerfpipe.data.cameras",
     "Distortion": "nerfpipe.functional.distortion",
-    "ImageSet": "nerfpipe.scene",
-    "NerfpipeError": "nerfpipe.errors",
-    "Points3D": "nerfpipe.scene",
-    "RayBundle": "nerfpipe.rays",
-    "SceneData": "nerfpipe.scene",
-    "Similarity": "nerfpipe.scene",
-    "camera_rays": "nerfpipe.rays",
-    "generate_rays": "nerfpipe.rays",
-    "invert_rigid": "nerfpipe.cameras",
-    "opengl_to_opencv": "nerfpipe.cameras",
-    "pixel_centers": "nerfpipe.rays",
+    "ImageSet": "nerfpipe.data.scene",
+    "NerfpipeError": "nerfpipe.util.errors",
+    "Pipeline": "nerfpipe.pipeline.stages",
+    "Points3D": "nerfpipe.data.scene",
+    "RayBundle": "nerfpipe.data.rays",
+    "SceneData": "nerfpipe.data.scene",
+    "Similarity": "nerfpipe.data.scene",
+    "Trainer": "nerfpipe.training.trainer",
+    "TrainerConfig": "nerfpipe.training.trainer",
+    "camera_rays": "nerfpipe.data.rays",
+    "generate_rays": "nerfpipe.data.rays",
+    "invert_rigid": "nerfpipe.data.cameras",
+    "load_run": "nerfpipe.training.runs",
+    "opengl_to_opencv": "nerfpipe.data.cameras",
+    "pixel_centers": "nerfpipe.data.rays",
     "volrend": "nerfpipe.functional.volrend",
 }
 """Public name -> the module that defines it."""

@@ -4,10 +4,10 @@ Each subcommand is a function in ``nerfpipe/commands/<name>.py`` whose typed, do
 arguments become the CLI (tyro). Command modules import heavy libraries lazily, inside the
 function, so ``nerfpipe --help`` stays fast.
 
-User errors (:class:`~nerfpipe.errors.NerfpipeError`) print one line and exit 2;
+User errors (:class:`~nerfpipe.util.errors.NerfpipeError`) print one line and exit 2;
 ``--debug`` anywhere on the command line shows the traceback instead.
 
-The command is the one place that changes process-wide settings (:func:`nerfpipe.runtime.apply`:
+The command is the one place that changes process-wide settings (:func:`nerfpipe.util.runtime.apply`:
 OpenMP waiting, glibc's allocator). It does so first, before anything imports torch, which is why
 this module and ``nerfpipe/__init__.py`` import nothing heavy at the top.
 """
@@ -16,7 +16,7 @@ import os
 import sys
 import warnings
 
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.util.errors import NerfpipeError
 
 
 def _commands() -> dict:
@@ -69,13 +69,13 @@ def _dispatch(argv: "list[str]"):
 
 def main(argv: "list[str] | None" = None) -> int:
     code = _main(argv)
-    if "nerfpipe.distributed" in sys.modules:  # only it joins a torchrun group; importing it here would load torch
-        sys.modules["nerfpipe.distributed"].end_process(code)  # a rank of a group ends here (nerfpipe.distributed.leave)
+    if "nerfpipe.training.distributed" in sys.modules:  # only it joins a torchrun group; importing it here would load torch
+        sys.modules["nerfpipe.training.distributed"].end_process(code)  # a rank of a group ends here (nerfpipe.training.distributed.leave)
     return code
 
 
 def _main(argv: "list[str] | None") -> int:
-    from nerfpipe import runtime
+    from nerfpipe.util import runtime
 
     runtime.apply()  # before torch loads OpenMP (the command's choice; importing nerfpipe makes none)
     argv = list(sys.argv[1:] if argv is None else argv)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # pytest -n 2 shares the cores: no spinning waits (nerfpipe/runtime.py)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # pytest -n 2 shares the cores: no spinning waits (nerfpipe/util/runtime.py)
 import torch
 
 REPO = Path(__file__).resolve().parents[1]

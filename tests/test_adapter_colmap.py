@@ -10,10 +10,10 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from nerfpipe import data_adapters  # noqa: E402
 from colmap_synth import PARAMS, make_scene, synthesize, write_scene  # noqa: E402
+from nerfpipe.data.scene import holdout_split  # noqa: E402
 from nerfpipe.data_adapters import colmap  # noqa: E402
-from nerfpipe.errors import NerfpipeError  # noqa: E402
 from nerfpipe.functional.distortion import Distortion  # noqa: E402
-from nerfpipe.scene import holdout_split  # noqa: E402
+from nerfpipe.util.errors import NerfpipeError  # noqa: E402
 
 # COLMAP model -> (nerfpipe code, the 4 nerfpipe distortion params from COLMAP's params p)
 EXPECTED = {

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from nerfpipe import data_adapters
-from nerfpipe.cameras import opengl_to_opencv
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.cameras import opengl_to_opencv
+from nerfpipe.util.errors import NerfpipeError
 
 LEGO_CAMERA_ANGLE_X = 0.6911112070083618  # nerf_synthetic lego, see blender_lego/PROVENANCE.md
 

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from nerfpipe import data_adapters
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.normalize import TARGET_CAMERA_DISTANCE
 from nerfpipe.functional.distortion import Distortion
-from nerfpipe.normalize import TARGET_CAMERA_DISTANCE
+from nerfpipe.util.errors import NerfpipeError
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 

@@ -37,7 +37,7 @@ SECONDS = 30.0
 @pytest.fixture(scope="module")
 def base(tmp_path_factory) -> Path:
     """Base inputs to copy from: a Blender set, a COLMAP model, a trained run folder."""
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     root = tmp_path_factory.mktemp("bad-inputs-base")
     generate(root / "blender", SynthConfig(layout="blender", scene="sphere", views=8, width=16, height=16))
@@ -312,14 +312,14 @@ def _config_text(text):
 
 def _checkpoint_of_another_model(run: Path, tmp: Path) -> Path:
     from nerfpipe.models.registry import get_model
-    from nerfpipe.runs import to_dict
+    from nerfpipe.training.runs import to_dict
 
     _json_edit(run / "config.json", lambda d: d.update(model="vanilla", model_config=to_dict(get_model("vanilla").config())))
     return run / "checkpoint.safetensors"
 
 
 def _checkpoint_missing_tensors(run: Path, tmp: Path) -> Path:
-    from nerfpipe.checkpoint import load_checkpoint, save_checkpoint
+    from nerfpipe.training.checkpoint import load_checkpoint, save_checkpoint
 
     state = load_checkpoint(run / "checkpoint.safetensors")
     state["model"] = dict(list(state["model"].items())[1:])
@@ -759,7 +759,7 @@ def test_real_entry_point_prints_one_line(name, base, tmp_path):
 def test_missing_optional_dependency_is_found_before_training(base, tmp_path, monkeypatch):
     """The MP4 writer is needed only at the end; without it, training must not start (a lost result),
     and metrics.json or anything else must not be half-written."""
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training.trainer import Trainer
 
     started = []
     monkeypatch.setattr(Trainer, "train_step", lambda self: started.append(1))
@@ -780,8 +780,8 @@ def test_in_memory_images_handed_to_the_load_stage_are_checked(tmp_path, name, a
     """The Python API's other input: image names stay inside the run folder, arrays must be images."""
     from colmap_synth import synthesize
 
-    from nerfpipe.errors import NerfpipeError
-    from nerfpipe.stages import Pipeline
+    from nerfpipe.pipeline.stages import Pipeline
+    from nerfpipe.util.errors import NerfpipeError
 
     with pytest.raises(NerfpipeError, match=message):
         Pipeline(["load"]).run(None, tmp_path / "run", reconstruction=synthesize(frames=3, points=20), images={name: array})

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nerfpipe.bench import BenchConfig, write_table
+from nerfpipe.training.bench import BenchConfig, write_table
 
 
 def row(preset, budget, psnr, mb):
@@ -39,7 +39,7 @@ def tiny_lego(scene_path, tmp_path):
 
 
 def test_bench_run_scores_each_budget(scene_path, tmp_path):
-    from nerfpipe.bench import run
+    from nerfpipe.training.bench import run
 
     npz = tiny_lego(scene_path, tmp_path)
     rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads()))
@@ -53,8 +53,8 @@ def test_bench_run_scores_each_budget(scene_path, tmp_path):
 def test_preset_overrides_reach_the_model_config():
     import pytest
 
-    from nerfpipe.bench import resolve_preset
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.training.bench import resolve_preset
+    from nerfpipe.util.errors import NerfpipeError
 
     name, cfg, over = resolve_preset("fast-small:distortion_weight=0.001,tv_weight=1e-5,tighten_step=128")
     assert name == "fast" and cfg.preset == "small" and over["rays_per_step"] == 4096

@@ -6,14 +6,14 @@ import math
 import pytest
 import torch
 
-from nerfpipe.camera_path import (
+from nerfpipe.data.camera_path import (
     CameraPath, Keyframe, from_json, interpolate_keyframes, matrix_to_wxyz, path_from_keyframes, read_camera_path,
     to_json, write_camera_path, wxyz_to_matrix,
 )  # fmt: skip
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.orbit import look_at
 from nerfpipe.functional.distortion import Distortion
-from nerfpipe.orbit import look_at
+from nerfpipe.util.errors import NerfpipeError
 
 
 def _rotations(n: int, seed: int = 0) -> torch.Tensor:

@@ -9,8 +9,8 @@ from scipy.optimize import fsolve
 
 import nerfpipe
 from nerfpipe import Cameras, Distortion, Similarity, camera_rays, generate_rays, invert_rigid, opengl_to_opencv, pixel_centers
+from nerfpipe.data.normalize import TARGET_CAMERA_DISTANCE, auto_normalization, bounds_from_cameras, focus_point, rotation_to_z, upright_direction
 from nerfpipe.functional.distortion import distort_opencv
-from nerfpipe.normalize import TARGET_CAMERA_DISTANCE, auto_normalization, bounds_from_cameras, focus_point, rotation_to_z, upright_direction
 
 
 def random_rotation(gen, dtype=torch.float64):

@@ -11,11 +11,11 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from nerfpipe import data_adapters  # noqa: E402
 from colmap_synth import make_scene  # noqa: E402
-from nerfpipe import consistency  # noqa: E402
-from nerfpipe.cameras import opengl_to_opencv  # noqa: E402
 from nerfpipe.cli import main  # noqa: E402
-from nerfpipe.consistency import MAX_PX, REPROJ_AGREE_PX, check_scene  # noqa: E402
-from nerfpipe.rays import generate_rays  # noqa: E402
+from nerfpipe.data import consistency  # noqa: E402
+from nerfpipe.data.cameras import opengl_to_opencv  # noqa: E402
+from nerfpipe.data.consistency import MAX_PX, REPROJ_AGREE_PX, check_scene  # noqa: E402
+from nerfpipe.data.rays import generate_rays  # noqa: E402
 
 
 def _pycolmap_reprojection(rec) -> np.ndarray:

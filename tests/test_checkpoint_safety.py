@@ -11,9 +11,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from nerfpipe.checkpoint import CHECKPOINT, LEGACY_CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.cli import main
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.training.checkpoint import CHECKPOINT, LEGACY_CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
+from nerfpipe.util.errors import NerfpipeError
 
 
 class _Payload:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from nerfpipe.cli import main
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.util.errors import NerfpipeError
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -103,8 +103,8 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
 
 def test_clean_errors_keep_their_cause_for_debug(tmp_path):
     """One line for the user, but ``--debug`` can still show what the library raised (``from exc``)."""
-    from nerfpipe.errors import NerfpipeError
-    from nerfpipe.scene import read_image_uint8
+    from nerfpipe.data.scene import read_image_uint8
+    from nerfpipe.util.errors import NerfpipeError
 
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")

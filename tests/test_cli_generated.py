@@ -13,8 +13,8 @@ from nerfpipe.cli import main
 from nerfpipe.commands.run import run_command_type, stage_command_type
 from nerfpipe.commands.train import command_type
 from nerfpipe.models.registry import models, presets
-from nerfpipe.stages import stages
-from nerfpipe.trainer import TrainerConfig
+from nerfpipe.pipeline.stages import stages
+from nerfpipe.training.trainer import TrainerConfig
 
 
 def leaf_options(config: object, prefix: str = "") -> "set[str]":

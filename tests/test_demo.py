@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from nerfpipe.commands.demo import demo_configs
-from nerfpipe.stages import DEFAULT_CHAIN, Pipeline, stages
-from nerfpipe.synthetic import MESH_FILE, SynthConfig, generate
+from nerfpipe.data.synthetic import MESH_FILE, SynthConfig, generate
+from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline, stages
 
 
 def _tiny_configs() -> dict:
@@ -61,7 +61,7 @@ def test_mesh_metrics_against_the_ground_truth(tiny_run):
     assert m["chamfer_l1"] > 0.0
     assert 0.0 <= m["points_within_threshold"] <= 1.0 and 0 < m["points_used"] <= m["points_total"]
     page = (result.run_dir / "report.html").read_text()
-    from nerfpipe.report import fmt
+    from nerfpipe.pipeline.report import fmt
 
     assert "Against the reference" in page and f"<td>{fmt(m['fscore'])}</td>" in page
 
@@ -69,8 +69,8 @@ def test_mesh_metrics_against_the_ground_truth(tiny_run):
 def test_train_stage_takes_its_share_of_the_pipeline_budget(tmp_path):
     from dataclasses import replace
 
+    from nerfpipe.pipeline.stages import StageContext
     from nerfpipe.plugins.train import TrainStageConfig, _trainer_config
-    from nerfpipe.stages import StageContext
 
     stage = TrainStageConfig()
     share = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0)).train_budget

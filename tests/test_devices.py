@@ -1,14 +1,14 @@
-"""``--device auto``: one resolver (:func:`nerfpipe.devices.check_device`) for every command, config and stage."""
+"""``--device auto``: one resolver (:func:`nerfpipe.util.devices.check_device`) for every command, config and stage."""
 
 import dataclasses
 
 import pytest
 import torch
 
-from nerfpipe import devices
-from nerfpipe.bench import BenchConfig
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.trainer import TrainerConfig
+from nerfpipe.training.bench import BenchConfig
+from nerfpipe.training.trainer import TrainerConfig
+from nerfpipe.util import devices
+from nerfpipe.util.errors import NerfpipeError
 
 
 def test_auto_is_the_cpu_on_a_machine_without_cuda(monkeypatch):
@@ -56,7 +56,7 @@ def test_every_command_defaults_to_auto():
 def test_the_trainer_records_the_resolved_device(tiny_lego, tmp_path, monkeypatch):
     """``auto`` is resolved once, so config.json and the run's generators name the device the run used."""
     from nerfpipe.models.fast import FastConfig
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training.trainer import Trainer
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     trainer = Trainer(TrainerConfig(iters=1, video_frames=0, write_outputs=False), tiny_lego, "fast", FastConfig(levels=(8, 16)), tmp_path)
@@ -82,9 +82,9 @@ def test_the_default_chain_runs_on_cuda_with_device_auto(tmp_path):
     pick, which is CUDA on a machine with a GPU."""
     import json
 
+    from nerfpipe.data.synthetic import SynthConfig, generate
+    from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline
     from nerfpipe.plugins.train import TRAIN_DIR
-    from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
-    from nerfpipe.synthetic import SynthConfig, generate
     from test_demo import _tiny_configs
 
     scene = generate(tmp_path / "scene", SynthConfig(views=16, width=48, height=48, num_points=800))
@@ -97,9 +97,9 @@ def test_a_trained_fast_model_renders_the_same_on_every_device(tiny_lego, tmp_pa
     trained on the CPU, copied to the device, renders the same colours (no jitter at evaluation)."""
     import copy
 
+    from nerfpipe.data.rays import camera_rays
     from nerfpipe.models.fast import FastConfig
-    from nerfpipe.rays import camera_rays
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training.trainer import Trainer
 
     cfg = TrainerConfig(iters=40, rays_per_step=256, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False, device="cpu")
     trainer = Trainer(cfg, tiny_lego, "fast", FastConfig(levels=(16, 32), coarse_to_fine_every=8, tighten_step=24), tmp_path)

@@ -23,11 +23,11 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from nerfpipe import distributed
-from nerfpipe.checkpoint import load_checkpoint
 from nerfpipe.models.base import Callback
 from nerfpipe.models.fast import FastConfig
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.training import distributed
+from nerfpipe.training.checkpoint import load_checkpoint
+from nerfpipe.training.trainer import Trainer, TrainerConfig
 
 REPO = Path(__file__).resolve().parents[1]
 MODEL = {"levels": [16, 32], "tighten_step": 6, "coarse_to_fine_every": 0,
@@ -41,9 +41,9 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 from nerfpipe.data_adapters import load
-from nerfpipe.runs import from_dict
 from nerfpipe.models.fast import FastConfig
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.training.runs import from_dict
+from nerfpipe.training.trainer import Trainer, TrainerConfig
 
 data, out, model, trainer, pause = sys.argv[1], Path(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4]), float(sys.argv[5])
 rank, attempt = os.environ["RANK"], os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")
@@ -60,14 +60,14 @@ def train_step():
 t.train_step = train_step
 t.train()
 save(f"rank{rank}-{attempt}.safetensors")
-from nerfpipe import distributed
+from nerfpipe.training import distributed
 distributed.end_process(0)
 """
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     out = tmp_path_factory.mktemp("dp") / "scene"
     generate(out, SynthConfig(views=8, width=24, height=24, num_points=400))  # COLMAP layout: track rays too
@@ -103,7 +103,7 @@ def two_ranks(scene, tmp_path_factory) -> Path:
 
 def test_one_step_of_two_processes_is_one_step_on_the_union_of_their_rays(scene, two_ranks, tmp_path, monkeypatch):
     from nerfpipe.data_adapters import load
-    from nerfpipe.runs import from_dict
+    from nerfpipe.training.runs import from_dict
 
     got = load_file(str(two_ranks.parent / "rank0-0-step1.safetensors"))
 
@@ -143,7 +143,7 @@ def test_one_step_of_two_processes_is_one_step_on_the_union_of_their_rays(scene,
 
 def test_ranks_stay_identical_through_refreshes_and_tightening_and_resume_in_one_process(scene, two_ranks, tmp_path):
     from nerfpipe.data_adapters import load
-    from nerfpipe.runs import from_dict
+    from nerfpipe.training.runs import from_dict
 
     out, iters = two_ranks, ITERS
     r0, r1 = (load_file(str(out.parent / f"rank{r}-0.safetensors")) for r in (0, 1))

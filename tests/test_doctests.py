@@ -15,7 +15,7 @@ MODULES = sorted(
 
 
 def test_some_modules_have_examples():
-    assert "nerfpipe.render" in MODULES and len(MODULES) >= 10
+    assert "nerfpipe.outputs.render" in MODULES and len(MODULES) >= 10
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -6,11 +6,11 @@ renders and gradients unchanged."""
 import pytest
 import torch
 
+from nerfpipe.data.rays import RayBundle
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, Rounds, ray_aabb_intersect
 from nerfpipe.functional.packed import prune_mask
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import FastConfig
-from nerfpipe.rays import RayBundle
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 RES = 8

@@ -6,13 +6,13 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from nerfpipe.data.rays import RayBundle
 from nerfpipe.data_adapters import load
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
-from nerfpipe.rays import RayBundle
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.training.trainer import Trainer, TrainerConfig
 from reference import trilinear_loop
 
 RES = (5, 4, 6)
@@ -273,8 +273,8 @@ def test_resume_keeps_the_learning_rate_schedule(tiny_scene, tmp_path, device):
 
 def test_briefly_trained_model_renders_the_same_with_early_termination(tiny_scene, tmp_path):
     """The density pass in rounds (early termination) keeps the full pass's samples on a trained field."""
-    from nerfpipe.rays import camera_rays
-    from nerfpipe.render import render_cameras
+    from nerfpipe.data.rays import camera_rays
+    from nerfpipe.outputs.render import render_cameras
 
     model_cfg = FastConfig(levels=(12, 24), feature_channels=2, hidden=16, step_ratio=1.0, tighten_step=8, min_transmittance=0.3,
                            occupancy=OccupancyGridConfig(resolution=24, warmup_steps=2, update_every=2))  # rays terminate soon
@@ -304,7 +304,7 @@ def test_briefly_trained_model_renders_the_same_with_early_termination(tiny_scen
 def test_voxel_size_is_read_once_per_box_and_follows_a_new_box():
     """The voxel size is cached per box (a host read on CUDA each time otherwise) and recomputed when the box changes."""
     from nerfpipe.fields.fast_field import FastField
-    from nerfpipe.opcount import DispatchCounter
+    from nerfpipe.training.opcount import DispatchCounter
 
     field = FastField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), [(9, 9, 9), (17, 17, 5)])
     direct = lambda level: float(((field.aabb[1] - field.aabb[0]) / (torch.tensor(field.density_grid.resolutions[level]) - 1.0)).min())  # noqa: E731

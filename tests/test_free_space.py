@@ -5,11 +5,11 @@ figure reaches eval-mesh and the mesh stage's references."""
 import numpy as np
 import pytest
 
+from nerfpipe.data.synthetic import SynthConfig, generate
 from nerfpipe.data_adapters import load
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.metrics import free_space_violation
 from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
-from nerfpipe.synthetic import SynthConfig, generate
 
 
 @pytest.fixture(scope="module")

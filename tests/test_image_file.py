@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import torch
 
-from nerfpipe.image_file import read_image_uint8
+from nerfpipe.data.image_file import read_image_uint8
 
 
 def test_decoded_images_are_writable(tmp_path):

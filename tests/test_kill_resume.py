@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from nerfpipe.checkpoint import load_checkpoint
-from nerfpipe.runlock import LOCK_FILE
-from nerfpipe.stages import Pipeline
+from nerfpipe.pipeline.stages import Pipeline
+from nerfpipe.training.checkpoint import load_checkpoint
+from nerfpipe.util.runlock import LOCK_FILE
 
 REPO = Path(__file__).resolve().parents[1]
 CHAIN = ["load", "train", "render", "mesh"]
@@ -35,8 +35,8 @@ CONFIGS = {
 KILLED = """
 import json, sys, time
 from pathlib import Path
-import nerfpipe.artifacts, nerfpipe.checkpoint, nerfpipe.mesh.pipeline, nerfpipe.trainer
-from nerfpipe.stages import Pipeline
+import nerfpipe.outputs.artifacts, nerfpipe.training.checkpoint, nerfpipe.mesh.pipeline, nerfpipe.training.trainer
+from nerfpipe.pipeline.stages import Pipeline
 
 point, data, run_dir, marker, configs = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4], json.loads(sys.argv[5])
 
@@ -52,9 +52,9 @@ def pause_after(owner, name, nth):
     setattr(owner, name, wrapper)
 
 owner, name, nth = {
-    "training": (nerfpipe.trainer.Trainer, "train_step", %(mid)d),  # between the checkpoints at steps %(every)d and %(next)d
-    "checkpoint": (nerfpipe.checkpoint, "save_file", 2),  # the second checkpoint in its temporary, not yet in place
-    "render": (nerfpipe.artifacts, "write_sequence", 1),  # frames written into render/'s temporary folder
+    "training": (nerfpipe.training.trainer.Trainer, "train_step", %(mid)d),  # between the checkpoints at steps %(every)d and %(next)d
+    "checkpoint": (nerfpipe.training.checkpoint, "save_file", 2),  # the second checkpoint in its temporary, not yet in place
+    "render": (nerfpipe.outputs.artifacts, "write_sequence", 1),  # frames written into render/'s temporary folder
     "mesh": (nerfpipe.mesh.pipeline, "write_meshes", 1),  # mesh.ply written into mesh/'s temporary folder
 }[point]
 pause_after(owner, name, nth)
@@ -64,7 +64,7 @@ Pipeline(%(chain)r, configs).run(data, run_dir)
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     out = tmp_path_factory.mktemp("killed") / "scene"
     generate(out, SynthConfig(views=10, width=24, height=24, layout="blender"))
@@ -145,7 +145,7 @@ def test_killed_run_resumes_and_scores_as_an_uninterrupted_one(point, rerun, sce
 def test_a_folder_moved_aside_by_a_killed_replace_is_put_back(tmp_path):
     """Killed between the two renames of a folder replace: the target is missing, its old content is
     aside and the new one still in its temporary. The next run's sweep puts the old one back."""
-    from nerfpipe.atomic import sweep_temporaries
+    from nerfpipe.util.atomic import sweep_temporaries
 
     (tmp_path / ".tmp-old-0123abcd-render").mkdir()
     (tmp_path / ".tmp-old-0123abcd-render" / "orbit.gif").write_text("the finished render")

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.many import ManyConfig, plan
-from nerfpipe.runlock import holder
-from nerfpipe.stages import Pipeline
+from nerfpipe.pipeline.many import ManyConfig, plan
+from nerfpipe.pipeline.stages import Pipeline
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.runlock import holder
 
 ITERS, EVERY = 80, 5
 CONFIGS = {
@@ -30,7 +30,7 @@ CONFIGS = {
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory) -> "list[Path]":
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     root = tmp_path_factory.mktemp("captures")
     for name, seed in (("turntable_a", 0), ("turntable_b", 1)):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.cameras import Cameras
 from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, visible_faces
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.views import look_at
+from nerfpipe.util.errors import NerfpipeError
 
 
 def sphere(radius=1.0, center=(0.0, 0.0, 0.0), subdivisions=4) -> TriangleMesh:

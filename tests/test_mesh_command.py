@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.cameras import Cameras
 from nerfpipe.cli import main
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import ImageSet, SceneData, Similarity
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import write_ply
 from nerfpipe.mesh.views import look_at
 from nerfpipe.models.base import Model, RenderOutputs
-from nerfpipe.scene import ImageSet, SceneData, Similarity
 
 RADIUS = 0.5
 WORLD_FROM_INPUT = Similarity(torch.eye(3, dtype=torch.float64), torch.tensor([0.2, 0.0, -0.1], dtype=torch.float64), 2.0)
@@ -52,9 +52,9 @@ def sphere_scene(n=12, size=48) -> SceneData:
 
 @pytest.fixture
 def fake_run(tmp_path, monkeypatch):
-    import nerfpipe.runs
+    import nerfpipe.training.runs
 
-    monkeypatch.setattr(nerfpipe.runs, "load_run", lambda run_dir, device="cpu": (sphere_scene(), SphereModel(), {}))
+    monkeypatch.setattr(nerfpipe.training.runs, "load_run", lambda run_dir, device="cpu": (sphere_scene(), SphereModel(), {}))
     return tmp_path
 
 
@@ -98,7 +98,7 @@ def test_eval_mesh_cli(tmp_path, capsys):
 
 def test_eval_mesh_against_colmap_points(tmp_path, capsys):
     """A synthetic COLMAP scene: its gt mesh holds every sparse point; a shifted mesh fewer."""
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     scene = tmp_path / "scene"
     generate(scene, SynthConfig(views=6, width=32, height=32, num_points=300, min_track_length=2))

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.scene import Similarity
 from nerfpipe.mesh import export
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import read_mesh, to_input_frame, write_ply
 from nerfpipe.mesh.metrics import compare_meshes, point_fraction, sample_surface
-from nerfpipe.scene import Similarity
+from nerfpipe.util.errors import NerfpipeError
 
 
 def box_mesh(extents=(1.0, 2.0, 0.5)) -> TriangleMesh:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.errors import NerfpipeError
 from nerfpipe.mesh.extract import Grid, auto_level, extract_mesh
+from nerfpipe.util.errors import NerfpipeError
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 R = 0.6

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.errors import NerfpipeError
 from nerfpipe.mesh.extract import auto_level, mesh_volume, sample_volume
 from nerfpipe.mesh.level import _agreement_score_reference, agreement_score, choose_level, densities_at
 from nerfpipe.mesh.pipeline import MeshConfig, build_meshes
+from nerfpipe.util.errors import NerfpipeError
 
 BOX = torch.tensor([[-1.0] * 3, [1.0] * 3])
 R = 0.6

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data.scene import Similarity
 from nerfpipe.mesh.pipeline import FILES, MeshConfig, build_meshes, write_meshes
-from nerfpipe.scene import Similarity
+from nerfpipe.util.errors import NerfpipeError
 
 BOX = torch.tensor([[-1.0] * 3, [1.0] * 3])
 

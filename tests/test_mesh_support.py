@@ -7,14 +7,14 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from nerfpipe.cameras import Cameras
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import Similarity
 from nerfpipe.mesh.clean import faces_blocking_sight_lines, faces_on_or_below_plane, remove_small_components, support_plane, visible_faces
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.metrics import sample_surface
 from nerfpipe.mesh.pipeline import MeshConfig, build_meshes, plane_in_input_frame
 from nerfpipe.mesh.reference import SightLines
 from nerfpipe.mesh.views import look_at
-from nerfpipe.scene import Similarity
 
 
 def sphere(radius: float, center=(0.0, 0.0, 0.0), subdivisions: int = 4) -> TriangleMesh:

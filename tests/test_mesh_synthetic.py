@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe import synthetic
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data import synthetic
+from nerfpipe.data.rays import camera_rays
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.extract import Grid, auto_level, extract_mesh
 from nerfpipe.mesh.metrics import compare_meshes
 from nerfpipe.mesh.tsdf import tsdf_fuse
-from nerfpipe.rays import camera_rays
+from nerfpipe.util.errors import NerfpipeError
 
 BOX = torch.tensor([[-1.3] * 3, [1.3] * 3])
 

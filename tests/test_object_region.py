@@ -3,7 +3,7 @@ object's parts that carry few points."""
 
 import torch
 
-from nerfpipe.normalize import OBJECT_PAD, bounds_from_points, object_region
+from nerfpipe.data.normalize import OBJECT_PAD, bounds_from_points, object_region
 from test_mesh_clean import ring_cameras
 
 

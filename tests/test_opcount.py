@@ -1,11 +1,11 @@
-"""The dispatch counter (:mod:`nerfpipe.opcount`) and the budget of ATen ops and host syncs of one fast
+"""The dispatch counter (:mod:`nerfpipe.training.opcount`) and the budget of ATen ops and host syncs of one fast
 training step in the steady state (issue 13: a GPU idles while the host waits on a sync or launches
 one tiny kernel after another; both are counted here on the CPU, where they are the same calls)."""
 
 import pytest
 import torch
 
-from nerfpipe.opcount import DispatchCounter, _transfer, count_steps
+from nerfpipe.training.opcount import DispatchCounter, _transfer, count_steps
 
 
 def test_reads_back_and_data_dependent_shapes_are_syncs():
@@ -91,7 +91,7 @@ Issue 13's goal is 1: it takes fixed-capacity sample buffers."""
 def steady_counts(request, tiny_lego, tmp_path_factory):
     """Counts of :data:`COUNTED` steady steps on each device (on CUDA the copies between host and device count too)."""
     from nerfpipe.models.fast import FastConfig
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
 
     torch.set_num_threads(1)
     model = FastConfig(preset="small", levels=(16, 32, 48), coarse_to_fine_every=8, tighten_step=24, fine_steps_from=0)

@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from nerfpipe.registry import ADAPTER_GROUP, MODEL_GROUP, STAGE_GROUP
+from nerfpipe.util.registry import ADAPTER_GROUP, MODEL_GROUP, STAGE_GROUP
 
 REPO = Path(__file__).resolve().parents[1]
 BUILTIN_STAGES = {"sfm", "load", "check", "export", "train", "render", "mesh", "report"}
@@ -46,9 +46,9 @@ def test_wheel_installs_only_the_nerfpipe_package(tmp_path):
 def _missing_from_core(core: "list[str]") -> "list[str]":
     """The optional modules a default ``nerfpipe train`` (and the MP4 of ``nerfpipe render``) imports that no
     core requirement installs: a core install must be able to train."""
-    from nerfpipe import evaluation
-    from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
-    from nerfpipe.trainer import TrainerConfig
+    from nerfpipe.outputs.artifacts import SEQUENCE_DEPENDENCIES
+    from nerfpipe.training import evaluation
+    from nerfpipe.training.trainer import TrainerConfig
 
     provides = {"imageio_ffmpeg": "imageio[ffmpeg]"}  # module -> the requirement that installs it
     needed = {module for module, _ in evaluation.dependencies(TrainerConfig()) + SEQUENCE_DEPENDENCIES}
@@ -77,7 +77,7 @@ def test_foreign_generic_packages_cannot_hide_the_builtin_stages(tmp_path):
     code = (
         "import plugins, warnings; assert plugins.FOREIGN\n"
         "warnings.simplefilter('error')\n"
-        "from nerfpipe.stages import stages\n"
+        "from nerfpipe.pipeline.stages import stages\n"
         "from nerfpipe.data_adapters import adapters\n"
         "print(' '.join(sorted(stages())), '|', ' '.join(sorted(adapters())))\n"
     )

@@ -6,7 +6,7 @@ import types
 
 import pytest
 
-from nerfpipe.registry import ADAPTER_GROUP, AdapterSpec, PluginWarning, discover
+from nerfpipe.util.registry import ADAPTER_GROUP, AdapterSpec, PluginWarning, discover
 
 GOOD = AdapterSpec(name="fake", description="a fake format", detect=lambda p: 0, read=lambda p: None)
 

@@ -48,7 +48,7 @@ def test_the_command_and_the_stage_render_the_same_files(scene_path, tmp_path, c
     import numpy as np
 
     from nerfpipe.cli import main
-    from nerfpipe.stages import Pipeline
+    from nerfpipe.pipeline.stages import Pipeline
 
     tiny = {"train": {"model": "vanilla", "model_options": {"num_samples": 8, "field": {"width": 16, "depth": 2, "skip": 1,
             "head_width": 16, "pos_frequencies": 2, "dir_frequencies": 1}}, "trainer": {"iters": 2, "rays_per_step": 32,

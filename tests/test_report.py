@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nerfpipe.report import REPORT_FILE, ReportConfig, fmt, write_report
-from nerfpipe.stages import DEFAULT_CHAIN, Pipeline, stages
+from nerfpipe.pipeline.report import REPORT_FILE, ReportConfig, fmt, write_report
+from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline, stages
 
 IMAGES = {
     "train/psnr.png": "PSNR curves", "train/progress.png": "validation view during training",
@@ -47,8 +47,8 @@ def _write_json(path: Path, data: dict) -> None:
 def _write_images(run: Path, big_cameras: bool) -> None:
     import imageio.v3 as iio
 
-    from nerfpipe.plots import plot_psnr
-    from nerfpipe.video import write_gif
+    from nerfpipe.outputs.plots import plot_psnr
+    from nerfpipe.outputs.video import write_gif
 
     (run / "train").mkdir(parents=True)
     plot_psnr({"train": [[i, 0.1 * i, 10 + i ** 0.5] for i in range(1, 50)], "val": [[0, 0, 9.0], [49, 4.9, 16.0]]}, run / "train" / "psnr.png")
@@ -278,9 +278,9 @@ def test_renaming_an_artifact_in_a_stage_declaration_moves_it_in_the_report(tmp_
     novel-views section shows the renamed file (and no longer the old name, though it is on disk)."""
     from dataclasses import replace
 
-    from nerfpipe.report import Page, build_html
-    from nerfpipe.report_items import Shown, declared
-    from nerfpipe.video import write_gif
+    from nerfpipe.outputs.video import write_gif
+    from nerfpipe.pipeline.report import Page, build_html
+    from nerfpipe.pipeline.report_items import Shown, declared
 
     run = tmp_path / "run"
     write_gif([_pattern(24, 20, 0)] * 2, run / "render" / "orbit.gif", 10.0)
@@ -302,8 +302,8 @@ def test_renaming_an_artifact_in_a_stage_declaration_moves_it_in_the_report(tmp_
 def test_every_section_reads_a_declared_artifact_of_a_stage(tmp_path):
     """No section asks for a role no stage declares, every built-in declaration is read by a section, and
     every declared file lies in what its stage produces; report.py itself names no stage's file."""
-    from nerfpipe.report import Page, build_html
-    from nerfpipe.report_items import declared, outside_produces
+    from nerfpipe.pipeline.report import Page, build_html
+    from nerfpipe.pipeline.report_items import declared, outside_produces
 
     specs = dict(stages())
     page = Page(tmp_path, items=declared(specs.values()))
@@ -311,7 +311,7 @@ def test_every_section_reads_a_declared_artifact_of_a_stage(tmp_path):
     assert page.undeclared == []
     assert set(page.items) <= page.used
     assert {name: outside_produces(spec) for name, spec in specs.items() if outside_produces(spec)} == {}
-    source = Path(__import__("nerfpipe.report", fromlist=["x"]).__file__).read_text()
+    source = Path(__import__("nerfpipe.pipeline.report", fromlist=["x"]).__file__).read_text()
     for spec in specs.values():
         for item in spec.shows:
             for f in item.files:
@@ -324,8 +324,8 @@ def test_a_declared_item_no_section_reads_goes_to_other_outputs(tmp_path):
 
     import imageio.v3 as iio
 
-    from nerfpipe.report import Page, build_html
-    from nerfpipe.report_items import Shown, declared
+    from nerfpipe.pipeline.report import Page, build_html
+    from nerfpipe.pipeline.report_items import Shown, declared
 
     specs = dict(stages())
     specs["extra"] = replace(specs["check"], name="extra", produces=("extra/out.json",), shows=(

@@ -13,17 +13,17 @@ from pathlib import Path
 import pytest
 
 from nerfpipe.data_adapters import load
-from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.vanilla import VanillaConfig
-from nerfpipe.runlock import LOCK_FILE, holder, run_lock
-from nerfpipe.stages import Pipeline, StageContext, StageSpec, atomic_path
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.pipeline.stages import Pipeline, StageContext, StageSpec, atomic_path
+from nerfpipe.training.trainer import Trainer, TrainerConfig
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.runlock import LOCK_FILE, holder, run_lock
 
 REPO = Path(__file__).resolve().parents[1]
 HOLD = """
 import sys, time
 from pathlib import Path
-from nerfpipe.runlock import run_lock
+from nerfpipe.util.runlock import run_lock
 with run_lock(sys.argv[1]):
     Path(sys.argv[2]).write_text("")
     time.sleep(120)
@@ -32,7 +32,7 @@ with run_lock(sys.argv[1]):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     out = tmp_path_factory.mktemp("lock") / "scene"
     generate(out, SynthConfig(views=8, width=16, height=16, layout="blender"))

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from nerfpipe.runtime import busy_cpus, choose_omp_wait_policy, keep_freed_memory
+from nerfpipe.util.runtime import busy_cpus, choose_omp_wait_policy, keep_freed_memory
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
@@ -22,7 +22,7 @@ def test_environment_opt_out(monkeypatch):
 
 def test_big_tensors_still_allocate_and_free():
     """A 1.25 GiB block is above the raised mmap threshold and a 64 MiB one below it: both work."""
-    code = "import nerfpipe.runtime as r; r.apply(); import torch; a = torch.ones(335544320); b = torch.ones(16777216); print(float(a[-1] + b[-1]))"
+    code = "import nerfpipe.util.runtime as r; r.apply(); import torch; a = torch.ones(335544320); b = torch.ones(16777216); print(float(a[-1] + b[-1]))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "2.0"
 
@@ -56,7 +56,7 @@ def _without_openmp_settings() -> dict:
 
 def test_the_cli_decides_before_torch_loads():
     """``nerfpipe.cli`` imports no torch, and its ``main`` makes the settings first (so OpenMP sees them)."""
-    code = ("import io, sys, contextlib, nerfpipe.cli as cli, nerfpipe.runtime as r, os\n"
+    code = ("import io, sys, contextlib, nerfpipe.cli as cli, nerfpipe.util.runtime as r, os\n"
             "assert 'torch' not in sys.modules\n"
             "with contextlib.redirect_stdout(io.StringIO()): cli.main(['stages'])\n"
             "print(r.OMP_WAIT, os.environ.get('OMP_WAIT_POLICY'))")
@@ -74,7 +74,7 @@ class Spy(ctypes.CDLL):  # records every C function looked up, mallopt included
         return super().__getattr__(name)
 ctypes.CDLL = Spy
 environ = dict(os.environ)
-import nerfpipe, nerfpipe.runtime as r
+import nerfpipe, nerfpipe.util.runtime as r
 from nerfpipe import Cameras, SceneData, volrend  # the lazy names load torch
 print(r.OMP_WAIT, "mallopt" in calls, dict(os.environ) == environ, "torch" in sys.modules)
 """
@@ -87,7 +87,7 @@ def test_importing_nerfpipe_changes_nothing_in_the_process():
 
 
 def test_apply_after_torch_leaves_the_environment_alone():
-    code = "import torch, os, nerfpipe.runtime as r; print(r.apply(), r.apply(), os.environ.get('OMP_WAIT_POLICY'))"
+    code = "import torch, os, nerfpipe.util.runtime as r; print(r.apply(), r.apply(), os.environ.get('OMP_WAIT_POLICY'))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=_without_openmp_settings())
     assert out.stdout.split() == ["late", "late", "None"]
 
@@ -98,11 +98,11 @@ import torch._dynamo  # torch's optimisers import it, and it sets TORCHINDUCTOR_
 environ, threads = dict(os.environ), torch.get_num_threads()
 torch.manual_seed(1234)  # the host's own stream: a library must not move it
 host_rng = torch.get_rng_state()
-import nerfpipe.runtime as r
+import nerfpipe.util.runtime as r
 from nerfpipe.data_adapters import load
 from nerfpipe.models.base import Callback
 from nerfpipe.models.fast import FastConfig
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.training.trainer import Trainer, TrainerConfig
 cfg = TrainerConfig(iters=6, rays_per_step=128, eval_every=3, final_eval_views=1, video_frames=0, checkpoint_every=3,
                     num_threads=1 if threads > 1 else 2, seed=5, write_outputs=False)
 model = FastConfig(levels=(8, 16), occupancy=FastConfig().occupancy.__class__(warmup_steps=0, update_every=2))
@@ -118,7 +118,7 @@ print(r.OMP_WAIT, dict(os.environ) == environ, torch.equal(torch.get_rng_state()
 def test_a_training_leaves_the_process_as_it_found_it(tmp_path):
     """Import, train (occupancy refreshes, jitter, validation, checkpoints): the environment, torch's global
     stream and thread count are as before; the run's own thread count held while it trained."""
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     generate(tmp_path / "scene", SynthConfig(views=8, width=16, height=16, layout="blender"))
     out = subprocess.run([sys.executable, "-c", TRAIN, str(tmp_path / "scene"), str(tmp_path / "run")],

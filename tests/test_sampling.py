@@ -3,9 +3,9 @@
 import pytest
 import torch
 
+from nerfpipe.data.rays import RayBundle
+from nerfpipe.data.samples import RaySamples
 from nerfpipe.functional.sampling import merge_edges, pdf_samples, stratified_samples
-from nerfpipe.rays import RayBundle
-from nerfpipe.samples import RaySamples
 from reference import pdf_samples_loop
 
 

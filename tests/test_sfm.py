@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.stages import Pipeline
+from nerfpipe.pipeline.stages import Pipeline
 
 PHOTOS = ["100_7100.JPG", "100_7101.JPG", "100_7102.JPG", "100_7103.JPG"]
 MAX_SIZE = 400
@@ -139,7 +139,7 @@ def test_a_sideways_stored_portrait_photo_is_turned_upright_for_sfm(tmp_path):
     """A phone's portrait photo: landscape pixels and EXIF orientation 6 (turn 90 degrees clockwise to view)."""
     from PIL import Image
 
-    from nerfpipe.image_file import read_image_uint8
+    from nerfpipe.data.image_file import read_image_uint8
     from nerfpipe.plugins.sfm import prepare_images
 
     upright = np.zeros((60, 40, 3), np.uint8)  # what the user sees: 40 wide, 60 high, red on top

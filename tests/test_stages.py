@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.checkpoint import load_checkpoint
 from nerfpipe.cli import main
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.registry import PluginWarning, STAGE_GROUP
-from nerfpipe.stages import Pipeline, StageContext, StageSpec, atomic_path, config_hash, marker_path, stages
+from nerfpipe.pipeline.stages import Pipeline, StageContext, StageSpec, atomic_path, config_hash, marker_path, stages
+from nerfpipe.training.checkpoint import load_checkpoint
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.registry import PluginWarning, STAGE_GROUP
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "plugins" / "example_pointcloud"
@@ -81,7 +81,7 @@ def plugin_entry_points(monkeypatch):
     fake = [
         importlib.metadata.EntryPoint("pointcloud", "nerfpipe_example_pointcloud:STAGE", STAGE_GROUP),
         importlib.metadata.EntryPoint("broken", "nerfpipe_no_such_plugin:STAGE", STAGE_GROUP),
-        importlib.metadata.EntryPoint("mistyped", "nerfpipe.stages:DEFAULT_CHAIN", STAGE_GROUP),
+        importlib.metadata.EntryPoint("mistyped", "nerfpipe.pipeline.stages:DEFAULT_CHAIN", STAGE_GROUP),
     ]
     original = importlib.metadata.entry_points
 
@@ -149,7 +149,7 @@ import sys, time
 from pathlib import Path
 sys.path.insert(0, {tests!r})
 from test_stages import toy_registry, toy_stage
-from nerfpipe.stages import Pipeline, atomic_path
+from nerfpipe.pipeline.stages import Pipeline, atomic_path
 
 def slow(config, ctx):
     with atomic_path(ctx.path("b.txt")) as tmp:

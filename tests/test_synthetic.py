@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.synthetic import (
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.data.synthetic import (
     MESH_FILE,
     SCENE_FILE,
     SPHERE_RADIUS,
@@ -69,7 +69,7 @@ def test_centre_depth_is_distance_to_sphere(sphere_views):
 
 
 def test_depth_matches_analytic_ray_sphere_hits(sphere_views):
-    from nerfpipe.rays import camera_rays
+    from nerfpipe.data.rays import camera_rays
 
     cfg, _, cams, _, views = sphere_views
     for i, view in enumerate(views):

@@ -7,12 +7,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from nerfpipe.data_adapters import load
 from nerfpipe.cli import main
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.data_adapters import load
 from nerfpipe.fields.vanilla import VanillaFieldConfig
 from nerfpipe.models.vanilla import VanillaConfig
-from nerfpipe.trainer import Trainer, TrainerConfig
+from nerfpipe.training.trainer import Trainer, TrainerConfig
+from nerfpipe.util.errors import NerfpipeError
 
 SIZE = 16
 
@@ -125,7 +125,7 @@ def test_ample_time_budget_keeps_the_full_protocol(tiny_scene, tmp_path):
 
 
 def test_progress_eta_under_a_time_budget_is_the_time_to_the_end_of_the_run():
-    from nerfpipe.progress import TrainProgress
+    from nerfpipe.util.progress import TrainProgress
 
     bar = TrainProgress(tcfg(iters=100_000, time_budget=100.0), 0, 0.0, window=75.0)
     assert bar.eta(1, 1.0, wall=10.0) == pytest.approx(90.0)  # first update: to the end of the budget
@@ -171,8 +171,7 @@ def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
 
 
 def test_rgba_targets_use_the_batch_background():
-    from nerfpipe.pixel_sampler import background_colors, composite_pixels
-    from nerfpipe.trainer import backgrounds
+    from nerfpipe.data.background import background_colors, composite_pixels, backgrounds
 
     px = torch.tensor([[255, 0, 0, 255], [0, 255, 0, 0], [0, 0, 255, 128]], dtype=torch.uint8)
     bg = background_colors("random", 3, torch.Generator().manual_seed(0))
@@ -187,7 +186,7 @@ def test_rgba_targets_use_the_batch_background():
 
 
 def test_stale_optimizer_state_of_resized_parameters_is_dropped():
-    from nerfpipe.trainer import drop_stale_optimizer_state
+    from nerfpipe.training.trainer import drop_stale_optimizer_state
 
     keep, resized = torch.nn.Parameter(torch.ones(3)), torch.nn.Parameter(torch.ones(4))
     opt = torch.optim.Adam([keep, resized], lr=0.1)

@@ -4,11 +4,11 @@ and the per-image colour corrections (zero-mean, identity at evaluation)."""
 
 import torch
 
+from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import FastConfig
-from nerfpipe.rays import RayBundle
 
 
 def test_contract_matches_reference_and_bounds(dtype, device, tol):
@@ -149,7 +149,7 @@ def test_appearance_absorbs_a_per_image_exposure():
 def test_track_rays_pass_through_their_points(scene_path):
     """Rays through COLMAP keypoints of colmap_mouse pass by their 3D points at the reprojection error."""
     from nerfpipe.data_adapters import load
-    from nerfpipe.pixel_sampler import PixelSampler
+    from nerfpipe.training.pixel_sampler import PixelSampler
 
     scene = load(scene_path("colmap_mouse"))
     sampler = PixelSampler(scene, "train", "black", track_rays=256)
@@ -188,7 +188,7 @@ def test_depth_loss_rewards_stopping_at_the_point_and_punishes_fog():
 
 
 def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():
-    from nerfpipe.evaluation import fitted_colour_psnr, score
+    from nerfpipe.training.evaluation import fitted_colour_psnr, score
 
     g = torch.Generator().manual_seed(0)
     gt = torch.rand(40, 60, 3, generator=g)
@@ -298,7 +298,7 @@ def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own
     varies left to right, the other's the opposite way): the image codes learn both; evaluation shows the
     mean, and fitting a held-out view's code to some of its pixels (NeRF-W's protocol) renders the rest in
     its own light, leaving the trained model unchanged."""
-    from nerfpipe.evaluation import appearance_fitted_psnr
+    from nerfpipe.training.evaluation import appearance_fitted_psnr
 
     torch.manual_seed(0)
     model = _model(num_images=2, background_field=False, appearance_fit_steps=80)

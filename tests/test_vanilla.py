@@ -3,14 +3,14 @@
 import pytest
 import torch
 
-from nerfpipe.cameras import Cameras
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.orbit import look_at, orbit_cameras
+from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.models.base import Model, ModelSpec, SceneInfo
 from nerfpipe.models.registry import models
 from nerfpipe.models.vanilla import VanillaConfig
-from nerfpipe.orbit import look_at, orbit_cameras
-from nerfpipe.rays import RayBundle
-from nerfpipe.render import render_cameras
+from nerfpipe.outputs.render import render_cameras
 
 TINY = VanillaFieldConfig(width=16, depth=3, skip=2, head_width=8, pos_frequencies=4, dir_frequencies=2)
 INFO = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=2.0, far=6.0, num_images=1, pixels_per_image=4)
@@ -104,7 +104,7 @@ def test_render_cameras_is_chunk_invariant():
 
 
 def test_depth_colormap_is_monotone_and_marks_background():
-    from nerfpipe.colormap import colorize_depth
+    from nerfpipe.outputs.colormap import colorize_depth
 
     depth = torch.linspace(2.0, 6.0, 5)[None].expand(2, 5).clone()
     acc = torch.ones(2, 5)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from nerfpipe.data_adapters import load
-from nerfpipe.camera_path import CameraPath, Keyframe, path_from_keyframes, read_camera_path, write_camera_path
 from nerfpipe.cli import main
-from nerfpipe.orbit import look_at
-from nerfpipe.render import RenderedView, render_cameras, to_uint8
+from nerfpipe.data.camera_path import CameraPath, Keyframe, path_from_keyframes, read_camera_path, write_camera_path
+from nerfpipe.data.orbit import look_at
+from nerfpipe.data_adapters import load
+from nerfpipe.outputs.render import RenderedView, render_cameras, to_uint8
 from nerfpipe.viewer import content
 from nerfpipe.viewer.progressive import ProgressiveRenderer, RenderCost, ViewRequest, cpu_sample, others_busy, pinhole_camera
 from nerfpipe.viewer.source import open_source
@@ -293,7 +293,7 @@ def test_the_viewer_serves_its_page_on_a_free_port(synth, tmp_path):
 
 def test_view_command_serves_a_dataset_and_finds_a_pipeline_runs_training(synth, tmp_path, capsys):
     _viser()
-    from nerfpipe.runs import find_run
+    from nerfpipe.training.runs import find_run
 
     assert main(["view", str(synth), "--port", "0", "--seconds", "0"]) == 0
     assert "(dataset (no trained field: no live render), 8 cameras) at http://localhost:" in capsys.readouterr().out
@@ -354,7 +354,7 @@ def test_a_watched_training_trains_as_an_unwatched_one(synth, tmp_path):
     _viser()
     from nerfpipe.fields.vanilla import VanillaFieldConfig
     from nerfpipe.models.vanilla import VanillaConfig
-    from nerfpipe.trainer import Trainer, TrainerConfig
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
     from nerfpipe.viewer.training import watch
 
     scene = load(synth)

@@ -33,8 +33,8 @@ def bench(
         seed: random seed.
         device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
-    from nerfpipe.bench import BenchConfig, run
-    from nerfpipe.devices import announce
+    from nerfpipe.training.bench import BenchConfig, run
+    from nerfpipe.util.devices import announce
 
     cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
                       threads=threads, clock=clock, seed=seed, device=announce(device), rays_per_step=rays_per_step)

@@ -1,6 +1,6 @@
 """``nerfpipe check``: verify a dataset's camera conventions independently (kornia, COLMAP points).
 
-The checks live in :mod:`nerfpipe.consistency`; this command only formats them. Exit code 1
+The checks live in :mod:`nerfpipe.data.consistency`; this command only formats them. Exit code 1
 means a convention is broken (see the listed failures), 0 means every check passed.
 """
 
@@ -22,9 +22,9 @@ def check(path: DatasetPath, json: bool = False, samples: int = 16, seed: int = 
 
     from nerfpipe import data_adapters
     from nerfpipe.commands.info import print_table
-    from nerfpipe.consistency import check_scene
+    from nerfpipe.data.consistency import check_scene
 
-    from nerfpipe.errors import refuse_unless
+    from nerfpipe.util.errors import refuse_unless
 
     refuse_unless([("samples", samples >= 0, "0 or more", samples)])
     torch.set_num_threads(min(2, torch.get_num_threads()))

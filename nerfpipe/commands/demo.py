@@ -1,6 +1,6 @@
 """``nerfpipe demo``: the README's main command. Needs no data: it renders the default synthetic
 scene (COLMAP layout, with its ground-truth mesh) and runs the default chain of ``nerfpipe run``
-on it through the same :class:`nerfpipe.stages.Pipeline`, with demo-sized options."""
+on it through the same :class:`nerfpipe.pipeline.stages.Pipeline`, with demo-sized options."""
 
 from pathlib import Path
 
@@ -37,11 +37,11 @@ def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_second
         device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
     from nerfpipe.commands.run import _console, _log_to, installed_stages, run_and_print
-    from nerfpipe.devices import check_device
-    from nerfpipe.errors import refuse_unless
-    from nerfpipe.paths import check_output_folder
-    from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
+    from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline
+    from nerfpipe.util.devices import check_device
+    from nerfpipe.util.errors import refuse_unless
+    from nerfpipe.util.paths import check_output_folder
 
     device = check_device(device)  # before the scene is rendered into OUT (printed with the chain)
     check_output_folder(out)

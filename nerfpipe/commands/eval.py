@@ -30,13 +30,12 @@ def eval_run(
     import json as _json
     import time
 
-    from nerfpipe.atomic import write_json
-    from nerfpipe.devices import check_device, describe
-    from nerfpipe.errors import refuse_unless, require
-    from nerfpipe.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
-    from nerfpipe.pixel_sampler import background_colors
-    from nerfpipe.runs import load_run, model_dir
-    from nerfpipe.trainer import backgrounds
+    from nerfpipe.data.background import background_colors, backgrounds
+    from nerfpipe.training.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
+    from nerfpipe.training.runs import load_run, model_dir
+    from nerfpipe.util.atomic import write_json
+    from nerfpipe.util.devices import check_device, describe
+    from nerfpipe.util.errors import refuse_unless, require
 
     refuse_unless([("views", views >= 0, "0 or more", views), ("scale", 0 < scale <= 16, "a positive factor (at most 16)", scale),
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])

@@ -40,8 +40,8 @@ def eval_mesh(
     """
     import json as _json
 
-    from nerfpipe.errors import refuse_unless
     from nerfpipe.mesh.export import read_mesh
+    from nerfpipe.util.errors import refuse_unless
 
     refuse_unless([("samples", samples >= 1, "at least 1", samples),
                    ("threshold", threshold is None or threshold > 0, "a positive distance", threshold)])  # fmt: skip
@@ -66,8 +66,8 @@ def _against_mesh(pred, ref_mesh, threshold, samples) -> dict:
 
 def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
     from nerfpipe.data_adapters import load
-    from nerfpipe.errors import NerfpipeError
     from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
+    from nerfpipe.util.errors import NerfpipeError
 
     scene = load(ref)
     gt, points = dataset_references(scene, ref)

@@ -5,7 +5,7 @@ from typing import Literal, Optional
 
 import tyro
 
-from nerfpipe.errors import NerfpipeError
+from nerfpipe.util.errors import NerfpipeError
 
 
 def fit2d(
@@ -64,9 +64,9 @@ def fit2d(
     from nerfpipe.image_field import fit2d_run
     from nerfpipe.image_field.images import load_target
 
-    from nerfpipe.errors import refuse_unless, require_all
-    from nerfpipe.paths import check_output_folder
-    from nerfpipe.plots import PLOT_DEPENDENCIES
+    from nerfpipe.outputs.plots import PLOT_DEPENDENCIES
+    from nerfpipe.util.errors import refuse_unless, require_all
+    from nerfpipe.util.paths import check_output_folder
 
     refuse_unless((
         ("iterations", iterations is None or iterations >= 1, "at least 1", iterations),

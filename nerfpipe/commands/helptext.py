@@ -1,6 +1,6 @@
 """Help text as a reader sees it: the attribute docstrings tyro shows, without reStructuredText markup.
 
-Docstrings are written for the API docs (``code``, :class:`~nerfpipe.trainer.TrainerConfig`, hard-wrapped
+Docstrings are written for the API docs (``code``, :class:`~nerfpipe.training.trainer.TrainerConfig`, hard-wrapped
 lines); ``--help`` shows them as plain paragraphs. :func:`plain_help` wraps tyro's two docstring readers
 while a command line is parsed (a private tyro API: when it is absent, help keeps the raw docstrings).
 """
@@ -15,7 +15,7 @@ def plain(text: "str | None") -> "str | None":
     """Docstring text without RST roles and literals, single line breaks joined.
 
     Example:
-        >>> plain("Uses :func:`~nerfpipe.render.plan_frames` and ``chunk``\\nrays.\\n\\nNext.")
+        >>> plain("Uses :func:`~nerfpipe.outputs.render.plan_frames` and ``chunk``\\nrays.\\n\\nNext.")
         'Uses plan_frames and chunk rays.\\n\\nNext.'
     """
     if not text:

@@ -5,7 +5,7 @@ from typing import Annotated
 
 import tyro
 
-from nerfpipe.scene import SPLITS, SceneData
+from nerfpipe.data.scene import SPLITS, SceneData
 
 DatasetPath = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="PATH")]
 """A dataset file or folder given as the positional argument of a command."""

@@ -55,12 +55,12 @@ def mesh(
 
     import torch
 
-    from nerfpipe.devices import check_device
-    from nerfpipe.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig, write_meshes
-    from nerfpipe.paths import check_output_folder
     from nerfpipe.mesh.trained import RenderedViews, mesh_model
-    from nerfpipe.runs import load_run
+    from nerfpipe.training.runs import load_run
+    from nerfpipe.util.devices import check_device
+    from nerfpipe.util.errors import NerfpipeError, refuse_unless, require_all
+    from nerfpipe.util.paths import check_output_folder
 
     if level is not None and method != "mc":
         raise NerfpipeError("--level sets the marching-cubes iso-level: add --method mc")

@@ -25,7 +25,7 @@ def render(
     Args:
         run_dir: a run folder written by nerfpipe train or nerfpipe run.
         path: orbit (around the scene centre), test (the dataset's test poses; orbit when it has none), or a
-            camera_path.json file (nerfstudio's format, as ``nerfpipe view`` saves it; see nerfpipe/camera_path.py),
+            camera_path.json file (nerfstudio's format, as ``nerfpipe view`` saves it; see nerfpipe/data/camera_path.py),
             written as render/<file name>.gif/mp4 at the file's fps and size.
         depth: also write depth_<path>.gif (turbo colour map, mapping printed and saved).
         background: auto (the run's evaluation background), black or white.
@@ -40,11 +40,11 @@ def render(
     """
     import json
 
-    from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
-    from nerfpipe.devices import check_device
-    from nerfpipe.errors import require_all
-    from nerfpipe.novel_views import RENDER_DIR, RenderConfig, background as bg, read_path_file, render_sequence, write_render
-    from nerfpipe.runs import load_run
+    from nerfpipe.outputs.artifacts import SEQUENCE_DEPENDENCIES
+    from nerfpipe.outputs.novel_views import RENDER_DIR, RenderConfig, background as bg, read_path_file, render_sequence, write_render
+    from nerfpipe.training.runs import load_run
+    from nerfpipe.util.devices import check_device
+    from nerfpipe.util.errors import require_all
 
     config = RenderConfig(path=path, frames=frames, depth=depth, background=background, size=size, scale=scale,
                           max_size=max_size, chunk=chunk, fps=fps, pngs=pngs)  # fmt: skip

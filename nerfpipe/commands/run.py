@@ -32,14 +32,14 @@ def _log_to(console) -> None:
 
 def installed_stages(console) -> dict:
     """Discover stages; broken plugins are printed as one warning line each, not raised."""
-    from nerfpipe.stages import stages
+    from nerfpipe.pipeline.stages import stages
 
     return _reporting(console, stages)
 
 
 def _reporting(console, find):
     """``find()`` with its PluginWarnings printed as one line each (other warnings re-raised)."""
-    from nerfpipe.registry import PluginWarning
+    from nerfpipe.util.registry import PluginWarning
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PluginWarning)
@@ -91,8 +91,8 @@ def _mesh_line(m: dict) -> str:
 
 
 def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict):
-    from nerfpipe.errors import NerfpipeError
-    from nerfpipe.stages import DEFAULT_CHAIN, Pipeline
+    from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline
+    from nerfpipe.util.errors import NerfpipeError
 
     if stages is not None and pipeline is not None:
         raise NerfpipeError("give --stages or --pipeline, not both")
@@ -167,7 +167,7 @@ def _option_value(argv: "list[str]", name: str) -> "str | None":
 def run_main(argv: "list[str]") -> int:
     """``nerfpipe run PATH [--stages ...|--pipeline FILE] [--STAGE.OPTION VALUE ...]``: a pipeline file's
     options are the defaults, the command line changes them."""
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.util.errors import NerfpipeError
 
     console = _console()
     registry = installed_stages(console)
@@ -180,7 +180,7 @@ def run_main(argv: "list[str]") -> int:
     pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
     pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
     run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
-    from nerfpipe.devices import check_device
+    from nerfpipe.util.devices import check_device
 
     run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=check_device(cmd.device), time_budget=cmd.time_budget)
     return 0
@@ -189,12 +189,12 @@ def run_main(argv: "list[str]") -> int:
 def run_and_print(pipe, path, run_dir: Path, console, **options):
     """``pipe.run(path, run_dir, **options)`` with the chain, the stage table and the headline figures printed
     (by rank 0 alone under torchrun)."""
-    from nerfpipe.distributed import env_world
+    from nerfpipe.training.distributed import env_world
 
     if not env_world().writer:
         logging.getLogger("nerfpipe").setLevel(logging.WARNING)
         return pipe.run(path, run_dir, **options)
-    from nerfpipe.devices import check_device, describe
+    from nerfpipe.util.devices import check_device, describe
 
     console.print(describe(check_device(options.get("device", "auto"))))
     console.print(f"chain: {' -> '.join(pipe.names)}   run folder: {run_dir}")
@@ -234,7 +234,7 @@ def run_many(
         num_cpus: CPUs of the local Ray (default: the machine's).
         time_budget: seconds each capture's pipeline may take.
     """
-    from nerfpipe.many import ManyConfig
+    from nerfpipe.pipeline.many import ManyConfig
 
     cfg = ManyConfig(address=address, cpus_per_run=cpus_per_run, gpus_per_run=gpus_per_run, max_retries=max_retries,
                      num_cpus=num_cpus, time_budget=time_budget)
@@ -328,9 +328,9 @@ def _positionals(argv: "list[str]") -> "list[str]":
 def stage_main(argv: "list[str]") -> int:
     """``nerfpipe stage NAME RUN_DIR [--OPTION VALUE ...]``: the stage's options start at the values it last
     ran with in RUN_DIR (its marker), the command line changes them."""
-    from nerfpipe.errors import NerfpipeError
-    from nerfpipe.runlock import run_lock
-    from nerfpipe.stages import RUN_RECORD, Pipeline, make_config, marker_path, read_marker, run_stage
+    from nerfpipe.pipeline.stages import RUN_RECORD, Pipeline, make_config, marker_path, read_marker, run_stage
+    from nerfpipe.util.errors import NerfpipeError
+    from nerfpipe.util.runlock import run_lock
 
     console = _console()
     registry = installed_stages(console)

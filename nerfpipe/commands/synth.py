@@ -7,7 +7,7 @@ import tyro
 
 def parse_size(size: str) -> "tuple[int, int]":
     """``"128x96"`` -> ``(128, 96)`` (width, height)."""
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.util.errors import NerfpipeError
 
     parts = size.lower().split("x")
     if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
@@ -43,7 +43,7 @@ def synth(
     import os
     import time
 
-    from nerfpipe.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import SynthConfig, generate
 
     width, height = parse_size(size)
     cfg = SynthConfig(

@@ -1,7 +1,7 @@
 """``nerfpipe train``: fit a registered model to a dataset into a run folder.
 
 The options are generated from the config dataclasses (tyro), so none is restated here: every field of
-:class:`~nerfpipe.trainer.TrainerConfig` is ``--FIELD`` (``--iters``, ``--time-budget``, ...) and every field
+:class:`~nerfpipe.training.trainer.TrainerConfig` is ``--FIELD`` (``--iters``, ``--time-budget``, ...) and every field
 of the chosen model's config is ``--model.FIELD``, nested as the config nests (``--model.occupancy.resolution``),
 each with its attribute docstring as help. ``--model NAME`` picks a model or a named preset
 (:func:`nerfpipe.models.registry.presets`: ``fast``, ``fast-small``, ..., ``vanilla``), whose values are the
@@ -17,7 +17,7 @@ from typing import Annotated
 import tyro
 from tyro.conf import OmitArgPrefixes, Positional
 
-from nerfpipe.trainer import TrainerConfig
+from nerfpipe.training.trainer import TrainerConfig
 
 DEFAULT_MODEL = "fast"
 
@@ -83,13 +83,13 @@ def train(cmd: TrainCommand) -> int:
     """Train as ``cmd`` says; its ``time_budget`` counts from the process's start."""
     import time
 
-    from nerfpipe import evaluation
     from nerfpipe.data_adapters import load
-    from nerfpipe.devices import announce
-    from nerfpipe.errors import require_all
     from nerfpipe.models.registry import get_preset
-    from nerfpipe.paths import check_output_folder
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training import evaluation
+    from nerfpipe.training.trainer import Trainer
+    from nerfpipe.util.devices import announce
+    from nerfpipe.util.errors import require_all
+    from nerfpipe.util.paths import check_output_folder
 
     started = time.monotonic() - process_age()
     name = get_preset(cmd.model).model

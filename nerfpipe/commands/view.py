@@ -35,8 +35,8 @@ def view(
     """
     import time
 
-    from nerfpipe.devices import announce
-    from nerfpipe.errors import refuse_unless, require_all
+    from nerfpipe.util.devices import announce
+    from nerfpipe.util.errors import refuse_unless, require_all
     from nerfpipe.viewer.progressive import RenderThread
     from nerfpipe.viewer.server import VIEWER_DEPENDENCIES, Viewer
     from nerfpipe.viewer.source import open_source

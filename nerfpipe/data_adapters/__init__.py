@@ -6,9 +6,9 @@ register there too). :func:`load` picks the adapter whose ``detect`` scores a pa
 
 from pathlib import Path
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.registry import ADAPTER_GROUP, AdapterSpec, discover
-from nerfpipe.scene import SceneData
+from nerfpipe.data.scene import SceneData
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.registry import ADAPTER_GROUP, AdapterSpec, discover
 
 __all__ = ["adapters", "detect", "load"]
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.normalize import bounds_from_cameras
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.normalize import bounds_from_cameras
+from nerfpipe.util.errors import NerfpipeError
 
 ROTATION_TOL = 1e-3
 """Largest accepted ``|det R - 1|`` and ``max |RᵀR - I|`` (files store ~7 significant digits)."""
@@ -76,7 +76,7 @@ def synthetic_bounds(cameras: Cameras, rel_spread: float = 0.02):
 
     When every camera sits at the same distance ~4 from the origin (within ``rel_spread``),
     the scene is NeRF-synthetic-style and gets the conventional near/far 2/6; otherwise
-    near/far come from :func:`~nerfpipe.normalize.bounds_from_cameras`. The box always does.
+    near/far come from :func:`~nerfpipe.data.normalize.bounds_from_cameras`. The box always does.
 
     Returns:
         (near, far, aabb ``[2, 3]``)

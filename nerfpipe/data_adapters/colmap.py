@@ -3,14 +3,14 @@
 Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``, or the model
 files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
 Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
-``images/`` (:func:`nerfpipe.paths.resolve_inside`), which may itself be a link to the photos.
+``images/`` (:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
 
 Only registered images become cameras, sorted by image name; every 8th of them is ``val``
-(:func:`nerfpipe.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
+(:func:`nerfpipe.data.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
 (world-to-camera poses, OpenCV axes, top-left pixel centre at (0.5, 0.5)), so poses are only
-inverted and then normalised (:func:`nerfpipe.normalize.auto_normalization`).
+inverted and then normalised (:func:`nerfpipe.data.normalize.auto_normalization`).
 
-The sparse points carry their tracks (:class:`nerfpipe.scene.Points3D` ``track_*``): every
+The sparse points carry their tracks (:class:`nerfpipe.data.scene.Points3D` ``track_*``): every
 element of every ``point3D.track`` whose image is one of the cameras, ordered by camera and then
 by keypoint. ``meta`` keeps ``colmap_mean_reprojection_error`` (pycolmap's figure, recomputed on
 load: the mean over points of each track's mean error).
@@ -21,15 +21,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfpipe.data.cameras import Cameras, invert_rigid
+from nerfpipe.data.image_file import image_header
+from nerfpipe.data.normalize import auto_normalization, bounds_from_points
+from nerfpipe.data.scene import ImageSet, Points3D, SceneData, holdout_split
 from nerfpipe.data_adapters._common import check_focal
-from nerfpipe.cameras import Cameras, invert_rigid
-from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
-from nerfpipe.image_file import image_header
-from nerfpipe.normalize import auto_normalization, bounds_from_points
-from nerfpipe.paths import resolve_inside
-from nerfpipe.registry import AdapterSpec
-from nerfpipe.scene import ImageSet, Points3D, SceneData, holdout_split
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.paths import resolve_inside
+from nerfpipe.util.registry import AdapterSpec
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -227,7 +227,7 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
         points.xyz = norm.apply_points(points.xyz).float()
         near, far, aabb = bounds_from_points(cams, points.xyz)
     else:
-        from nerfpipe.normalize import bounds_from_cameras
+        from nerfpipe.data.normalize import bounds_from_cameras
 
         near, far, aabb = bounds_from_cameras(cams)
     rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale

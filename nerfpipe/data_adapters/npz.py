@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfpipe.data.cameras import Cameras, opengl_to_opencv
+from nerfpipe.data.image_file import images_uint8
+from nerfpipe.data.scene import ImageSet, SceneData, Similarity
 from nerfpipe.data_adapters._common import check_focal, check_world_from_cam, synthetic_bounds
-from nerfpipe.cameras import Cameras, opengl_to_opencv
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.image_file import images_uint8
-from nerfpipe.registry import AdapterSpec
-from nerfpipe.scene import ImageSet, SceneData, Similarity
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.registry import AdapterSpec
 
 CS180_KEYS = ("images_train", "c2ws_train", "images_val", "c2ws_val", "c2ws_test", "focal")
 TINY_KEYS = ("images", "poses", "focal")

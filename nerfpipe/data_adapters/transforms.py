@@ -12,8 +12,8 @@
   (kept in ``meta``) and ``ply_file_path`` (sparse points with colours).
 
 Single-file captures (instant-ngp, nerfstudio) are ordered by image file name and normalised
-with :func:`~nerfpipe.normalize.auto_normalization` (applied to poses and points); every 8th
-camera, starting with the first, is ``val`` (:func:`~nerfpipe.scene.holdout_split`), there is
+with :func:`~nerfpipe.data.normalize.auto_normalization` (applied to poses and points); every 8th
+camera, starting with the first, is ``val`` (:func:`~nerfpipe.data.scene.holdout_split`), there is
 no ``test``. ``transform_matrix`` is OpenGL camera-to-world in every flavour.
 
 Image sizes are checked against the cameras from the file headers only (nothing is decoded).
@@ -28,15 +28,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfpipe.data.cameras import Cameras, opengl_to_opencv
+from nerfpipe.data.image_file import image_header
+from nerfpipe.data.normalize import auto_normalization, bounds_from_cameras, bounds_from_points
+from nerfpipe.data.scene import SPLITS, ImageSet, Points3D, SceneData, Similarity, holdout_split
 from nerfpipe.data_adapters._common import check_focal, check_world_from_cam, synthetic_bounds
-from nerfpipe.cameras import Cameras, opengl_to_opencv
-from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.distortion import Distortion
-from nerfpipe.image_file import image_header
-from nerfpipe.normalize import auto_normalization, bounds_from_cameras, bounds_from_points
-from nerfpipe.paths import resolve_inside
-from nerfpipe.registry import AdapterSpec
-from nerfpipe.scene import SPLITS, ImageSet, Points3D, SceneData, Similarity, holdout_split
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.paths import resolve_inside
+from nerfpipe.util.registry import AdapterSpec
 
 SPLIT_FILES = {split: f"transforms_{split}.json" for split in SPLITS}
 CAPTURE_FILE = "transforms.json"

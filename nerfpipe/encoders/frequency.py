@@ -5,7 +5,7 @@ from dataclasses import dataclass
 from torch import nn
 
 from nerfpipe.functional.encoding import positional_encoding, positional_encoding_dim
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from nerfpipe.functional.gather import weighted_gather
-from nerfpipe.typing import Float, Int, Tensor
+from nerfpipe.util.typing import Float, Int, Tensor
 
 # Instant-NGP's per-dimension hashing primes (the first is 1 for cache coherence).
 _PRIMES = (1, 2654435761, 805459861, 3674653429, 2097192037, 1434869437, 2165219737)

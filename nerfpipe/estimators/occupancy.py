@@ -30,7 +30,7 @@ from torch import nn
 
 from nerfpipe.functional.packed import more_opaque_than
 from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
-from nerfpipe.typing import Bool, Float, Int, Tensor
+from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 
 @dataclass

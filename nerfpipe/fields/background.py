@@ -23,7 +23,7 @@ from nerfpipe.functional.contraction import contract, disparity_samples, dispari
 from nerfpipe.functional.packed import distortion_loss_packed
 from nerfpipe.functional.sampling import pdf_samples
 from nerfpipe.functional.volrend import render_weights
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

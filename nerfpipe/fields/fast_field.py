@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 def direction_encoding(d: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 16"]:

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from nerfpipe.functional.gather import weighted_gather
-from nerfpipe.typing import Float, Int, Tensor
+from nerfpipe.util.typing import Float, Int, Tensor
 
 # corner offsets (di, dj, dk) in the order of the eight trilinear weights
 _CORNERS = ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1), (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1))

@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from nerfpipe.functional.encoding import positional_encoding, positional_encoding_dim
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

@@ -19,7 +19,7 @@ Glossary:
 
 import torch
 
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 def to_box_coordinates(points: Float[Tensor, "*bs 3"], aabb: Float[Tensor, "2 3"]) -> Float[Tensor, "*bs 3"]:

@@ -13,7 +13,7 @@ from enum import IntEnum
 
 import torch
 
-from nerfpipe.typing import Float, Int, Tensor
+from nerfpipe.util.typing import Float, Int, Tensor
 
 
 class Distortion(IntEnum):

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 def positional_encoding_dim(dim: int, num_frequencies: int, include_input: bool = True) -> int:

@@ -8,7 +8,7 @@ several times slower on CPU).
 
 import torch
 
-from nerfpipe.typing import Float, Int, Tensor
+from nerfpipe.util.typing import Float, Int, Tensor
 
 
 class _WeightedGather(torch.autograd.Function):

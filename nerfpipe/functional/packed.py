@@ -18,7 +18,7 @@ ray's first sample, so long packed batches keep full float32 accuracy per ray.
 import torch
 
 from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
-from nerfpipe.typing import Bool, Float, Int, Tensor
+from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 
 def segment_starts(ray_indices: Int[Tensor, "num_samples"]) -> Int[Tensor, "num_samples"]:

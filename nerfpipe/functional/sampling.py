@@ -9,7 +9,7 @@ Glossary:
 
 import torch
 
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 def stratified_samples(

@@ -15,7 +15,7 @@ stay finite for sigma in [0, 1e10] and delta in [0, 1e3].
 
 import torch
 
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 MAX_THICKNESS = 1e4
 """Optical thickness ``sigma * delta`` is clamped here: ``exp(-1e4)`` is 0 in every float type."""

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from torch import nn
 
 from nerfpipe.encoders import GridEncoderConfig, PositionalEncoderConfig
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

@@ -49,7 +49,7 @@ def configure(preset: str, overrides: dict, shape: "tuple[int, ...]") -> Fit2dCo
     A grid's finest level defaults to the image's larger side, and its hash size to the largest
     power of two that keeps the model within ``PARAM_BUDGET`` of the image's value count.
     """
-    from nerfpipe.errors import NerfpipeError
+    from nerfpipe.util.errors import NerfpipeError
 
     cfg = get_preset(preset)
     enc = cfg.field.encoder

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.image_file import read_image_uint8
+from nerfpipe.data.image_file import read_image_uint8
+from nerfpipe.util.errors import NerfpipeError
 
 DEFAULT_IMAGE = "skimage:astronaut"
 """Used when no image is given: a photograph shipped inside scikit-image (no download)."""
@@ -46,7 +46,7 @@ def load_target(path: "str | Path | None", max_pixels: int = 2048 * 2048) -> Tar
 
 
 def _skimage_photo(name: str) -> np.ndarray:
-    from nerfpipe.errors import require
+    from nerfpipe.util.errors import require
 
     data = require("skimage.data", "plot")
     return np.asarray(getattr(data, name)())[..., :3].astype(np.uint8)

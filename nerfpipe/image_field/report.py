@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.atomic import atomic_write, write_json, write_text  # noqa: F401 (used by the fit2d modules)
+from nerfpipe.util.atomic import atomic_write, write_json, write_text  # noqa: F401 (used by the fit2d modules)
 from nerfpipe.image_field.train import FitResult
 
 

@@ -14,8 +14,8 @@ import torch
 from nerfpipe.encoders import GridEncoder, is_static
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.image_field.field import ImageFieldConfig
-from nerfpipe.scoped import seeded_init
-from nerfpipe.typing import Float, Tensor, UInt8
+from nerfpipe.util.scoped import seeded_init
+from nerfpipe.util.typing import Float, Tensor, UInt8
 
 
 @dataclass

@@ -17,11 +17,11 @@
 import numpy as np
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.rays import camera_rays
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.rays import camera_rays
-from nerfpipe.typing import Bool, Float, Int
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.typing import Bool, Float, Int
 
 
 def _meshset(mesh: TriangleMesh):

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 RgbFn = Callable[[Tensor, Tensor], Tensor]
 """``rgb_fn(points [N, 3], directions [N, 3]) -> rgb [N, 3]`` in [0, 1], world coordinates."""

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from nerfpipe.scene import Similarity
-from nerfpipe.typing import Float, Int, Shaped
+from nerfpipe.data.scene import Similarity
+from nerfpipe.util.typing import Float, Int, Shaped
 
 
 @dataclass

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.atomic import write_bytes
-from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.data.scene import Similarity
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.scene import Similarity
+from nerfpipe.util.atomic import write_bytes
+from nerfpipe.util.errors import NerfpipeError, require
 
 
 def to_input_frame(mesh: TriangleMesh, world_from_input: Similarity) -> TriangleMesh:

@@ -21,9 +21,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.typing import Float, Tensor
 
 DensityFn = Callable[[Tensor], Tensor]
 """``density_fn(points [N, 3]) -> density [N]`` (or ``[N, 1]``), world coordinates."""

@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from nerfpipe.errors import NerfpipeError, require
 from nerfpipe.functional.volrend import render_weights
 from nerfpipe.mesh.extract import Volume, _marching_cubes, auto_level
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.typing import Float, Tensor
 
 MAX_POINTS = 20_000
 """Surface points used for scoring (an even subsample of more)."""

@@ -18,9 +18,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from nerfpipe.errors import require
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Bool, Float, Int
+from nerfpipe.util.errors import require
+from nerfpipe.util.typing import Bool, Float, Int
 
 DEFAULT_THRESHOLD_FRACTION = 0.01
 

@@ -16,25 +16,25 @@ from typing import Literal
 import numpy as np
 
 
-from nerfpipe.atomic import write_json
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError, refuse_unless
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.util.atomic import write_json
+from nerfpipe.util.errors import NerfpipeError, refuse_unless
 from nerfpipe.mesh.clean import (
     close_holes, faces_blocking_sight_lines, faces_near_box_sides, faces_on_or_below_plane, hausdorff_distance, remove_small_components,
     simplify, support_plane, visible_faces,
 )
+from nerfpipe.data.normalize import upright_direction
+from nerfpipe.data.normalize import OBJECT_PAD
+from nerfpipe.data.scene import Similarity
 from nerfpipe.mesh.color import RgbFn, vertex_colors
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.normalize import upright_direction
 from nerfpipe.mesh.export import to_input_frame, write_ply
 from nerfpipe.mesh.extract import DensityFn, OccupancyFn, Volume, auto_level, level_from_surface_points, mesh_volume, sample_volume
 from nerfpipe.mesh.level import choose_level
 from nerfpipe.mesh.metrics import robust_diagonal
 from nerfpipe.mesh.tsdf import FrameFn, tsdf_fuse
 from nerfpipe.mesh.views import write_views
-from nerfpipe.normalize import OBJECT_PAD
-from nerfpipe.scene import Similarity
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 MESH_DEPENDENCIES = (("skimage.measure", "mesh"), ("open3d", "mesh"), ("pymeshlab", "mesh"), ("trimesh", "mesh"))
 """What meshing, cleaning, simplifying and writing need beyond the core (checked before the work starts)."""
@@ -75,7 +75,7 @@ class MeshConfig:
     level_clamp: float = 3.0
     """With ``level_from=agreement``: a point's distance counts at most this many coarse voxels."""
     crop_to_points: bool = True
-    """Mesh only the object region of the input's sparse points (:func:`nerfpipe.normalize.object_region`: their
+    """Mesh only the object region of the input's sparse points (:func:`nerfpipe.data.normalize.object_region`: their
     2-98% extent per axis near the cameras' focus, grown by ``crop_margin``), intersected with the occupied box;
     inputs without sparse points keep the occupied box."""
     crop_margin: float = OBJECT_PAD

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfpipe.errors import NerfpipeError
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.typing import Bool, Float
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.typing import Bool, Float
 
 
 def points_figures(
@@ -116,7 +116,7 @@ class SightLines:
 
 
 def sight_lines(scene, frame: str = "input") -> "SightLines | None":
-    """The dataset's track observations (:class:`nerfpipe.scene.Points3D` ``track_*``), in its ``input``
+    """The dataset's track observations (:class:`nerfpipe.data.scene.Points3D` ``track_*``), in its ``input``
     frame or nerfpipe's ``world`` frame (None without tracks)."""
     pts = scene.points
     if pts is None or not pts.has_tracks:
@@ -137,8 +137,8 @@ def dataset_references(scene, folder) -> "tuple[TriangleMesh | None, np.ndarray 
     """
     from pathlib import Path
 
+    from nerfpipe.data.synthetic import MESH_FILE
     from nerfpipe.mesh.export import read_mesh
-    from nerfpipe.synthetic import MESH_FILE
 
     gt = None
     if folder is not None:

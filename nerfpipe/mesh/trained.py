@@ -1,14 +1,14 @@
 """A mesh of a trained model: the glue between a model, its scene and :func:`build_meshes`.
 
 Shared by ``nerfpipe mesh`` and the ``mesh`` stage. The model is used only through callables
-(``density_fn``, ``rgb_fn``, its occupancy grid's ``occupied``) and :func:`nerfpipe.render.render_cameras`
+(``density_fn``, ``rgb_fn``, its occupancy grid's ``occupied``) and :func:`nerfpipe.outputs.render.render_cameras`
 (depth of training views for the automatic level and for TSDF fusion).
 """
 
 from dataclasses import dataclass
 
-from nerfpipe.errors import refuse_unless
 from nerfpipe.mesh.pipeline import MeshConfig, MeshOutputs
+from nerfpipe.util.errors import refuse_unless
 
 MIN_CROP_POINTS = 20
 """Fewer sparse points than this do not define an extent to crop to."""
@@ -77,11 +77,11 @@ def mesh_model(
 
 
 def crop_to_points(aabb, cameras, xyz, margin: float):
-    """``aabb`` intersected with the points' object region (:func:`nerfpipe.normalize.object_region`, grown by
+    """``aabb`` intersected with the points' object region (:func:`nerfpipe.data.normalize.object_region`, grown by
     ``margin``); ``aabb`` itself when they do not overlap."""
     import torch
 
-    from nerfpipe.normalize import object_region
+    from nerfpipe.data.normalize import object_region
 
     region = object_region(cameras, xyz, pad=margin)
     box = torch.stack([torch.maximum(aabb[0].double(), region[0]), torch.minimum(aabb[1].double(), region[1])]).float()
@@ -105,8 +105,8 @@ def surface_points(model, train, chunk: int, device: str, views: int = 8, size: 
     """Where the rays of a few rendered training views end (opaque pixels only, expected depth) and their origins, world frame."""
     import torch
 
-    from nerfpipe.rays import camera_rays
-    from nerfpipe.render import render_cameras
+    from nerfpipe.data.rays import camera_rays
+    from nerfpipe.outputs.render import render_cameras
 
     idx = torch.linspace(0, len(train) - 1, min(views, len(train))).round().long().unique()
     cams = resize_each(train[idx], size / torch.maximum(train[idx].width, train[idx].height).double())
@@ -130,8 +130,8 @@ def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, se
     import numpy as np
     import torch
 
-    from nerfpipe.rays import camera_rays
-    from nerfpipe.render import render_cameras
+    from nerfpipe.data.rays import camera_rays
+    from nerfpipe.outputs.render import render_cameras
 
     def spread(n: int):  # evenly spread training views; the first is always train[0]
         return torch.from_numpy(np.unique(np.linspace(0, len(train) - 1, min(n, len(train))).round().astype(np.int64)))
@@ -175,8 +175,8 @@ def stop_depth(view):
 
 def resize_each(cams, scale):
     """Scale every camera by its own factor (sizes may differ within a scene)."""
-    from nerfpipe.cameras import Cameras
-    from nerfpipe.render import resize_cameras
+    from nerfpipe.data.cameras import Cameras
+    from nerfpipe.outputs.render import resize_cameras
 
     parts = []
     for i in range(len(cams)):

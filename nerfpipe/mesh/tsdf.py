@@ -17,11 +17,11 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.rays import camera_rays
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.rays import camera_rays
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.typing import Float, Tensor
 
 BLOCK_RESOLUTION = 16
 """Voxels per side of one TSDF block."""

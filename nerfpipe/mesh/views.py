@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfpipe.atomic import write_bytes
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import require
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.rays import camera_rays
 from nerfpipe.mesh.container import TriangleMesh
-from nerfpipe.rays import camera_rays
-from nerfpipe.typing import Float
+from nerfpipe.util.atomic import write_bytes
+from nerfpipe.util.errors import require
+from nerfpipe.util.typing import Float
 
 BACKGROUND = 1.0
 BACKFACE_TINT = np.array([1.0, 0.45, 0.45])

@@ -1,7 +1,7 @@
 """The protocol every NeRF model follows, so one trainer, renderer and mesher serve them all.
 
 A model is built from its config dataclass by ``config.setup(scene_info)`` and renders a
-:class:`~nerfpipe.rays.RayBundle` into :class:`RenderOutputs`. Models are registered in the
+:class:`~nerfpipe.data.rays.RayBundle` into :class:`RenderOutputs`. Models are registered in the
 entry-point group ``nerfpipe.models`` as :class:`ModelSpec` objects.
 """
 
@@ -13,8 +13,8 @@ from collections.abc import Callable, Iterator
 import torch
 from torch import nn
 
-from nerfpipe.rays import RayBundle
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.data.rays import RayBundle
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

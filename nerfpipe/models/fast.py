@@ -22,14 +22,14 @@ from collections.abc import Callable, Iterator
 
 import torch
 
+from nerfpipe.data.rays import RayBundle
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ray_aabb_intersect
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
-from nerfpipe.rays import RayBundle
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Tensor
 
 PRESETS: "dict[str, dict]" = {
     "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64, log2_hashmap_size=None),

@@ -2,9 +2,9 @@
 
 from dataclasses import dataclass
 
-from nerfpipe.errors import NerfpipeError
 from nerfpipe.models.base import ModelSpec
-from nerfpipe.registry import MODEL_GROUP, discover
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.registry import MODEL_GROUP, discover
 
 
 def models() -> "dict[str, ModelSpec]":

@@ -7,14 +7,14 @@ from dataclasses import dataclass, field
 
 import torch
 
-from nerfpipe.errors import refuse_unless
+from nerfpipe.data.rays import RayBundle
+from nerfpipe.data.samples import RaySamples
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.functional.sampling import merge_edges, pdf_samples, stratified_samples
 from nerfpipe.functional.volrend import composite, render_weights
 from nerfpipe.models.base import Model, ModelSpec, RenderOutputs, SceneInfo
-from nerfpipe.rays import RayBundle
-from nerfpipe.samples import RaySamples
-from nerfpipe.typing import Float, Tensor
+from nerfpipe.util.errors import refuse_unless
+from nerfpipe.util.typing import Float, Tensor
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Stage ``check``: the kornia consistency check of the scene's camera conventions; fails fast.
 
-Runs :func:`nerfpipe.consistency.check_scene` and writes its figures to ``check.json``. When a
+Runs :func:`nerfpipe.data.consistency.check_scene` and writes its figures to ``check.json``. When a
 convention is broken (``failures`` not empty) the stage raises, so the pipeline stops before
 training on a wrongly converted scene; ``fail = false`` records the failures and goes on.
 """
@@ -8,9 +8,9 @@ training on a wrongly converted scene; ``fail = false`` records the failures and
 import json
 from dataclasses import dataclass
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.report_items import Shown
-from nerfpipe.stages import StageContext, StageSpec, write_json
+from nerfpipe.pipeline.report_items import Shown
+from nerfpipe.pipeline.stages import StageContext, StageSpec, write_json
+from nerfpipe.util.errors import NerfpipeError
 
 CHECK_JSON = "check.json"
 
@@ -28,7 +28,7 @@ class CheckConfig:
 
 
 def run(config: CheckConfig, ctx: StageContext) -> "dict[str, object]":
-    from nerfpipe.consistency import check_scene
+    from nerfpipe.data.consistency import check_scene
 
     report = check_scene(ctx.get("scene"), samples=config.samples, seed=config.seed)
     figures = report.as_dict()

@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError, require
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import SceneData
 from nerfpipe.functional.distortion import Distortion
-from nerfpipe.scene import SceneData
-from nerfpipe.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.util.errors import NerfpipeError, require
 
 EXPORT_DIR = "export"
 TRANSFORMS = f"{EXPORT_DIR}/transforms.json"

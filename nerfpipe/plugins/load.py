@@ -1,4 +1,4 @@
-"""Stage ``load``: read the input into a :class:`~nerfpipe.scene.SceneData` and summarise it.
+"""Stage ``load``: read the input into a :class:`~nerfpipe.data.scene.SceneData` and summarise it.
 
 Where the scene comes from, first match wins:
 
@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.image_file import image_uint8
-from nerfpipe.paths import resolve_inside
-from nerfpipe.report_items import Shown
-from nerfpipe.scene import SceneData, check_images
-from nerfpipe.stages import StageContext, StageSpec, atomic_path, write_json
+from nerfpipe.data.image_file import image_uint8
+from nerfpipe.data.scene import SceneData, check_images
+from nerfpipe.pipeline.report_items import Shown
+from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path, write_json
+from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.paths import resolve_inside
 
 SCENE_JSON = "scene.json"
 INPUT_DIR = "input"

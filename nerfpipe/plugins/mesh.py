@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 
 from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig
 from nerfpipe.mesh.trained import RenderedViews
-from nerfpipe.report_items import Shown
-from nerfpipe.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.pipeline.report_items import Shown
+from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
 
 MESH_DIR = "mesh"
 MESH_PLY = f"{MESH_DIR}/mesh.ply"

@@ -1,6 +1,6 @@
 """Stage ``render``: novel views of the trained model, an orbit in colour and depth.
 
-The same renderer as ``nerfpipe render`` (:mod:`nerfpipe.novel_views`: same options, same defaults,
+The same renderer as ``nerfpipe render`` (:mod:`nerfpipe.outputs.novel_views`: same options, same defaults,
 same files): frames at most ``max_size`` pixels on their longer side (phone photographs are not
 rendered at full size); under a pipeline time budget the first frame is timed and the stage keeps to
 ``budget_share`` of the time left: fewer frames (never below ``min_frames``), then smaller ones.
@@ -11,10 +11,10 @@ memory (``views``).
 
 import json
 
-from nerfpipe.artifacts import SEQUENCE_DEPENDENCIES
-from nerfpipe.novel_views import PATHS, RENDER_DIR, RenderConfig, frame_size, plan_frames  # noqa: F401 (this stage's API)
-from nerfpipe.report_items import Shown
-from nerfpipe.stages import StageContext, StageSpec
+from nerfpipe.outputs.artifacts import SEQUENCE_DEPENDENCIES
+from nerfpipe.outputs.novel_views import PATHS, RENDER_DIR, RenderConfig, frame_size, plan_frames  # noqa: F401 (this stage's API)
+from nerfpipe.pipeline.report_items import Shown
+from nerfpipe.pipeline.stages import StageContext, StageSpec
 
 SHOWS = (
     Shown("views_info", "table", tuple(f"{RENDER_DIR}/{p}.json" for p in PATHS), "novel views"),
@@ -26,7 +26,7 @@ SHOWS = (
 
 
 def run(config: RenderConfig, ctx: StageContext) -> "dict[str, object]":
-    from nerfpipe.novel_views import background, read_path_file, render_sequence, write_render
+    from nerfpipe.outputs.novel_views import background, read_path_file, render_sequence, write_render
 
     camera_file = read_path_file(config)
     scene, model = ctx.get("scene"), ctx.get("model")

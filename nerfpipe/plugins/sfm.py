@@ -19,10 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from nerfpipe.errors import NerfpipeError, require
-from nerfpipe.image_file import image_header, open_image
-from nerfpipe.paths import resolve_inside
-from nerfpipe.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.data.image_file import image_header, open_image
+from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.paths import resolve_inside
 
 SFM_DIR = "sfm"
 WORK_DIR = "sfm.work"

@@ -1,4 +1,4 @@
-"""Stage ``train``: fit a registered model (``nerfpipe.models`` group) with :class:`nerfpipe.trainer.Trainer`.
+"""Stage ``train``: fit a registered model (``nerfpipe.models`` group) with :class:`nerfpipe.training.trainer.Trainer`.
 
 The trainer's run folder is ``RUN_DIR/train`` (``config.json``, ``checkpoint.safetensors``, ``metrics.json``,
 ``psnr.png``, ``progress.png``, ``cameras.png``). Videos are the ``render`` stage's job, so the
@@ -8,7 +8,7 @@ Resume: when the stage runs again (interrupted, or with more ``iters`` or a new 
 ``train/checkpoint.safetensors`` holds the same model, model options and training options (``iters``
 and the budgets aside), training continues from that checkpoint; otherwise it starts afresh.
 
-Under torchrun every process runs this stage (it is *collective*, :mod:`nerfpipe.distributed`): rank 0
+Under torchrun every process runs this stage (it is *collective*, :mod:`nerfpipe.training.distributed`): rank 0
 decides resume and budget and sends them, and alone clears or writes ``train/``.
 
 Time budget: the trainer's ``train_budget`` (training seconds, validation excluded) is the smaller
@@ -20,12 +20,12 @@ import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from nerfpipe import checkpoint, evaluation
-from nerfpipe.configs import JsonTable
-from nerfpipe.errors import NerfpipeError, refuse_unless
-from nerfpipe.report_items import Shown
-from nerfpipe.stages import StageContext, StageSpec
-from nerfpipe.trainer import TrainerConfig
+from nerfpipe.pipeline.report_items import Shown
+from nerfpipe.pipeline.stages import StageContext, StageSpec
+from nerfpipe.training import checkpoint, evaluation
+from nerfpipe.training.trainer import TrainerConfig
+from nerfpipe.util.configs import JsonTable
+from nerfpipe.util.errors import NerfpipeError, refuse_unless
 
 TRAIN_DIR = "train"
 CHECKPOINT = f"{TRAIN_DIR}/{checkpoint.CHECKPOINT}"
@@ -62,8 +62,8 @@ class TrainStageConfig:
 
 def model_config(name: str, options: dict):
     """The registered model's config with ``options`` merged in (unknown keys are errors)."""
-    from nerfpipe.configs import from_dict
     from nerfpipe.models.registry import get_model
+    from nerfpipe.util.configs import from_dict
 
     spec = get_model(name)
     if not isinstance(options, dict):
@@ -81,7 +81,7 @@ def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfi
 
 def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> bool:
     """Whether ``out`` holds a checkpoint of this very training (up to the resumable options)."""
-    from nerfpipe.configs import to_dict
+    from nerfpipe.util.configs import to_dict
 
     if not (out / checkpoint.CHECKPOINT).is_file() or not (out / "config.json").is_file():
         return False
@@ -92,8 +92,8 @@ def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> 
 
 
 def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
-    from nerfpipe import distributed
-    from nerfpipe.trainer import Trainer
+    from nerfpipe.training import distributed
+    from nerfpipe.training.trainer import Trainer
 
     world = distributed.world(ctx.device)
     scene = ctx.get("scene")
@@ -114,7 +114,7 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
 
 
 def restore(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
-    from nerfpipe.runs import load_run
+    from nerfpipe.training.runs import load_run
 
     _, model, _ = load_run(ctx.path(TRAIN_DIR), ctx.device)
     return {"model": model, "metrics": json.loads(ctx.path(METRICS).read_text())}

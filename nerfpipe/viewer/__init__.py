@@ -5,5 +5,5 @@ Modules: :mod:`~nerfpipe.viewer.content` (what is drawn, as arrays), :mod:`~nerf
 :mod:`~nerfpipe.viewer.source` (a run or dataset folder opened for viewing),
 :mod:`~nerfpipe.viewer.training` (the viewer attached to a training loop) and
 :mod:`~nerfpipe.viewer.headless` (headless Chromium driving the page, for tests and benchmarks).
-Camera path files are :mod:`nerfpipe.camera_path`. viser is imported only when a viewer starts.
+Camera path files are :mod:`nerfpipe.data.camera_path`. viser is imported only when a viewer starts.
 """

@@ -1,7 +1,7 @@
 """What the viewer draws, as plain arrays (no viser here): camera frustums, the scene box, a sample of
 training rays with their samples, the sparse points, the mesh, and what a folder holds.
 
-Everything is in the run's world frame (nerfpipe's normalised world, :mod:`nerfpipe.scene`), with
+Everything is in the run's world frame (nerfpipe's normalised world, :mod:`nerfpipe.data.scene`), with
 OpenCV camera axes, as viser draws cameras.
 """
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.scene import SceneData
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import SceneData
+from nerfpipe.util.errors import NerfpipeError
 
 SPLIT_COLOURS = {"train": (40, 110, 230), "val": (240, 140, 20), "test": (130, 130, 130)}
 """Frustum colour of each split."""
@@ -36,7 +36,7 @@ class Frustum:
 
 def frustums(scene: SceneData) -> "list[Frustum]":
     """One :class:`Frustum` per camera of the scene, named ``<split>/<index>``, in camera order."""
-    from nerfpipe.camera_path import matrix_to_wxyz
+    from nerfpipe.data.camera_path import matrix_to_wxyz
 
     cams = scene.cameras
     split_of = {int(i): name for name, idx in scene.splits.items() for i in idx}
@@ -92,7 +92,7 @@ def training_rays(scene: SceneData, num_rays: int = 64, num_samples: int = 16, s
     leaves the scene box, with ``num_samples`` evenly spaced samples where it crosses the box (the
     stretch a sampler marches). Returns ``(segments [R, 2, 3], samples [R * num_samples, 3])``.
     """
-    from nerfpipe.rays import generate_rays
+    from nerfpipe.data.rays import generate_rays
 
     train = torch.as_tensor(scene.splits["train"], dtype=torch.long)
     if len(train) == 0:
@@ -125,7 +125,7 @@ def read_mesh(path: Path, scene: SceneData, max_faces: int = 300_000) -> "tuple[
     """``(vertices in the world frame, faces, vertex colours uint8 or None)`` of a mesh file written in the
     input frame (``nerfpipe mesh``), mapped by the scene's ``world_from_input``. Larger meshes than
     ``max_faces`` are refused (the simplified one is the one to show)."""
-    from nerfpipe.errors import require
+    from nerfpipe.util.errors import require
 
     trimesh = require("trimesh", "mesh")
     try:

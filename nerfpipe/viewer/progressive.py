@@ -26,7 +26,7 @@ frame shown 0.50-1.87 s against 0.22-0.44 s (README, viewer rows).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
 height cut to the strip (:func:`strip_camera`), rendered by the one renderer
-(:func:`nerfpipe.render.render_cameras`): a refined frame is the frame ``nerfpipe render`` makes of
+(:func:`nerfpipe.outputs.render.render_cameras`): a refined frame is the frame ``nerfpipe render`` makes of
 that camera, strip by strip.
 """
 
@@ -42,9 +42,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.render import RenderedView, to_uint8
-from nerfpipe.runtime import cpu_ticks
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.outputs.render import RenderedView, to_uint8
+from nerfpipe.util.runtime import cpu_ticks
 
 
 @dataclass(frozen=True)
@@ -121,8 +121,8 @@ def join_strips(parts: "list[RenderedView]") -> RenderedView:
 
 
 def depth_image(view: RenderedView) -> np.ndarray:
-    """The depth of a view colour-mapped over its own range (:mod:`nerfpipe.colormap`)."""
-    from nerfpipe.colormap import colorize_depth, depth_range
+    """The depth of a view colour-mapped over its own range (:mod:`nerfpipe.outputs.colormap`)."""
+    from nerfpipe.outputs.colormap import colorize_depth, depth_range
 
     lo, hi = depth_range([view.depth], [view.acc])
     return colorize_depth(view.depth, view.acc, lo, hi)
@@ -230,7 +230,7 @@ class ProgressiveRenderer:
 
     Args:
         render: renders a ``[1]`` batch of cameras (the run's model through
-            :func:`nerfpipe.render.render_cameras`).
+            :func:`nerfpipe.outputs.render.render_cameras`).
         show: called with each finished :class:`Frame`.
         max_size: longer side of the finest level, in pixels.
         levels: finer levels after the low frame, as fractions of ``max_size``.

@@ -20,10 +20,10 @@ from typing import Callable
 import numpy as np
 import torch
 
-from nerfpipe.camera_path import CameraPath, Keyframe, matrix_to_wxyz, path_from_keyframes, wxyz_to_matrix
-from nerfpipe.errors import NerfpipeError, require
-from nerfpipe.render import RenderedView
-from nerfpipe.scene import SceneData
+from nerfpipe.data.camera_path import CameraPath, Keyframe, matrix_to_wxyz, path_from_keyframes, wxyz_to_matrix
+from nerfpipe.data.scene import SceneData
+from nerfpipe.outputs.render import RenderedView
+from nerfpipe.util.errors import NerfpipeError, require
 from nerfpipe.viewer import content
 from nerfpipe.viewer.progressive import Frame, ProgressiveRenderer, ViewRequest
 
@@ -183,7 +183,7 @@ class Viewer:
         gui = self.server.gui
         cams = self.scene.split_cameras("train")
         w, h = (int(cams.width[0]), int(cams.height[0])) if len(cams) else (640, 480)
-        from nerfpipe.render import capped_size
+        from nerfpipe.outputs.render import capped_size
 
         w, h = capped_size(w, h, 1.0, 800)
         with gui.add_folder("Camera path"):
@@ -297,7 +297,7 @@ class Viewer:
 
     def save_path(self, file: "Path | None" = None) -> Path:
         """Write the camera path (nerfstudio's ``camera_path.json``) to ``file`` (default: the panel's)."""
-        from nerfpipe.camera_path import write_camera_path
+        from nerfpipe.data.camera_path import write_camera_path
 
         path = self.path()
         if path is None:
@@ -310,7 +310,7 @@ class Viewer:
 
     def load_path(self, file: "Path | None" = None) -> int:
         """Replace the keyframes by those of a camera path file (default: the panel's); returns how many."""
-        from nerfpipe.camera_path import read_camera_path
+        from nerfpipe.data.camera_path import read_camera_path
 
         target = Path(file) if file is not None else Path(self.path_name.value)
         try:

@@ -1,13 +1,13 @@
 """What ``nerfpipe view`` opens: a trained run (a ``nerfpipe train`` folder, or a pipeline run with ``train/``)
-or a dataset (any format ``data_adapters`` reads); a run is found by the one run-folder reader, :mod:`nerfpipe.runs`."""
+or a dataset (any format ``data_adapters`` reads); a run is found by the one run-folder reader, :mod:`nerfpipe.training.runs`."""
 
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from nerfpipe.cameras import Cameras
-from nerfpipe.render import RenderedView
-from nerfpipe.scene import SceneData
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import SceneData
+from nerfpipe.outputs.render import RenderedView
 
 
 @dataclass
@@ -25,8 +25,8 @@ class ViewSource:
 
 
 def model_renderer(model, background, device: str, chunk: int = 4096) -> "Callable[[Cameras], RenderedView]":
-    """The one renderer (:func:`nerfpipe.render.render_cameras`) for a ``[1]`` camera batch."""
-    from nerfpipe.render import render_cameras
+    """The one renderer (:func:`nerfpipe.outputs.render.render_cameras`) for a ``[1]`` camera batch."""
+    from nerfpipe.outputs.render import render_cameras
 
     bg = background.to(device)
     return lambda cams: render_cameras(model, cams.to(device), chunk, bg)[0]
@@ -36,8 +36,8 @@ def open_source(path: Path, device: str = "cpu") -> ViewSource:
     """A run folder (its scene, model and mesh) or a dataset; either is refused with one line when unreadable."""
     from nerfpipe.data_adapters import load
 
-    from nerfpipe.novel_views import RenderConfig, background
-    from nerfpipe.runs import find_run, load_run
+    from nerfpipe.outputs.novel_views import RenderConfig, background
+    from nerfpipe.training.runs import find_run, load_run
     from nerfpipe.viewer.content import find_mesh
 
     path = Path(path)

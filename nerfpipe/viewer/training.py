@@ -20,7 +20,7 @@ from nerfpipe.models.base import Callback
 
 
 class TrainingView:
-    """Attach a :class:`~nerfpipe.viewer.server.Viewer` to a :class:`~nerfpipe.trainer.Trainer`.
+    """Attach a :class:`~nerfpipe.viewer.server.Viewer` to a :class:`~nerfpipe.training.trainer.Trainer`.
 
     Args:
         trainer: the training to watch (its model is rendered live).
@@ -95,7 +95,7 @@ class TrainingView:
 
 def watch(trainer, host: str = "127.0.0.1", port: int = 7007, share: float = 0.04) -> TrainingView:
     """Start a viewer of a trainer's scene and model and attach it (prints the URL)."""
-    from nerfpipe.pixel_sampler import background_colors
+    from nerfpipe.data.background import background_colors
     from nerfpipe.viewer.server import Viewer
     from nerfpipe.viewer.source import model_renderer
 

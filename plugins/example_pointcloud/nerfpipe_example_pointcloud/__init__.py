@@ -2,16 +2,16 @@
 
 The points are written in the input frame (nerfpipe's normalisation undone), with their colours,
 so they overlay the original COLMAP model or the exported cameras. It uses only nerfpipe's public
-stage API: :class:`~nerfpipe.stages.StageSpec`, :class:`~nerfpipe.stages.StageContext` (the
-``scene`` artifact) and :func:`~nerfpipe.stages.atomic_path`.
+stage API: :class:`~nerfpipe.pipeline.stages.StageSpec`, :class:`~nerfpipe.pipeline.stages.StageContext` (the
+``scene`` artifact) and :func:`~nerfpipe.pipeline.stages.atomic_path`.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from nerfpipe.errors import NerfpipeError
-from nerfpipe.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
+from nerfpipe.util.errors import NerfpipeError
 
 POINTCLOUD = "pointcloud.ply"
 

@@ -1,0 +1,62 @@
+"""Camera paths for novel views: a generated orbit around the scene centre, upright, looking at it.
+
+World up is +z (the Blender/CS180 frame is z-up, and :mod:`nerfpipe.data.normalize` turns real captures
+so the mean camera up is +z). Cameras use the OpenCV axes of :mod:`nerfpipe.data.cameras`.
+"""
+
+import math
+
+import torch
+
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.util.typing import Float, Tensor
+
+WORLD_UP = (0.0, 0.0, 1.0)
+
+
+def look_at(eye: Float[Tensor, "*bs 3"], target: Float[Tensor, "*bs 3"], up: Float[Tensor, "3"]) -> Float[Tensor, "*bs 4 4"]:
+    """``world_from_cam`` of cameras at ``eye`` looking at ``target``, image up towards ``up``.
+
+    Example:
+        >>> m = look_at(torch.tensor([0.0, -4.0, 0.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+        >>> m[:3, :3].T.tolist()  # rows: right, down, forward
+        [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+    """
+    fwd = torch.nn.functional.normalize(target - eye, dim=-1)
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, up.expand_as(fwd)), dim=-1)
+    down = torch.linalg.cross(fwd, right)
+    m = torch.zeros(*eye.shape[:-1], 4, 4, dtype=eye.dtype, device=eye.device)
+    m[..., :3, 0], m[..., :3, 1], m[..., :3, 2], m[..., :3, 3] = right, down, fwd, eye
+    m[..., 3, 3] = 1.0
+    return m
+
+
+def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
+    """A full circle of cameras around ``center`` (about +z) at the reference cameras' mean
+    distance and elevation, with the intrinsics of the first reference camera."""
+    offsets = reference.centers.reshape(-1, 3).double() - center.double()
+    radius = float(offsets.norm(dim=-1).mean())
+    elevation = float(torch.asin((offsets[:, 2] / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
+    angles = torch.arange(num_frames, dtype=torch.float64) * (2 * math.pi / num_frames)
+    ring = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=-1) * math.cos(elevation)
+    eye = center.double() + radius * (ring + torch.tensor([0.0, 0.0, math.sin(elevation)], dtype=torch.float64))
+    m = look_at(eye, center.double().expand_as(eye), torch.tensor(WORLD_UP, dtype=torch.float64))
+    r = reference.reshape(-1)[0]
+    return Cameras.create(m, r.fx, r.fy, r.cx, r.cy, r.width, r.height, dtype=reference.fx.dtype)
+
+
+def path_cameras(scene, kind: str = "test", num_frames: int = 60) -> Cameras:
+    """Cameras for a novel-view sequence.
+
+    ``test``: the dataset's test poses (evenly subsampled to ``num_frames``), falling back to an
+    orbit when the scene has none; ``orbit``: :func:`orbit_cameras` around the aabb centre.
+    """
+    if kind not in ("test", "orbit"):
+        raise ValueError(f"unknown camera path '{kind}' (test or orbit)")
+    test = scene.splits.get("test")
+    if kind == "test" and test is not None and len(test):
+        cams = scene.split_cameras("test")
+        idx = torch.linspace(0, len(cams) - 1, min(num_frames, len(cams))).round().long()
+        return cams[idx]
+    center = scene.aabb.float().mean(0)
+    return orbit_cameras(scene.split_cameras("train"), center, num_frames)

@@ -1,0 +1,36 @@
+"""Depth as colour, with the mapping stated: turbo from near (blue) to far (red) over a fixed range.
+
+One range serves every frame of a sequence (so colours are comparable across frames); pixels whose
+accumulated opacity is below ``min_acc`` (background) are drawn black.
+"""
+
+import numpy as np
+import torch
+
+from nerfpipe.util.errors import require
+from nerfpipe.util.typing import Float, Tensor
+
+
+def depth_range(depths: "list[Tensor]", accs: "list[Tensor]", min_acc: float = 0.5, q: float = 0.01) -> "tuple[float, float]":
+    """Robust ``[lo, hi]`` of surface depths (the q and 1-q quantiles over foreground pixels)."""
+    vals = torch.cat([(d / a.clamp(min=1e-6))[a >= min_acc].reshape(-1) for d, a in zip(depths, accs)])
+    if vals.numel() == 0:
+        return 0.0, 1.0
+    if vals.numel() > 1_000_000:  # a fixed subset: the same range every call, torch's global stream untouched
+        vals = vals[torch.randperm(vals.numel(), generator=torch.Generator().manual_seed(0))[:1_000_000].to(vals.device)]
+    lo, hi = torch.quantile(vals.float(), torch.tensor([q, 1 - q])).tolist()
+    return lo, max(hi, lo + 1e-6)
+
+
+def colorize_depth(depth: Float[Tensor, "H W"], acc: Float[Tensor, "H W"], lo: float, hi: float, min_acc: float = 0.5) -> np.ndarray:
+    """uint8 ``[H, W, 3]``: turbo colour of ``(depth/acc - lo) / (hi - lo)``; background black."""
+    cm = require("matplotlib", "plot")
+    surface = (depth / acc.clamp(min=1e-6)).cpu().numpy()
+    t = np.clip((surface - lo) / (hi - lo), 0.0, 1.0)
+    rgb = cm.colormaps["turbo"](t)[..., :3]
+    rgb[acc.cpu().numpy() < min_acc] = 0.0
+    return (rgb * 255 + 0.5).astype(np.uint8)
+
+
+def mapping_text(lo: float, hi: float, min_acc: float = 0.5) -> str:
+    return f"turbo colormap of surface depth (depth/acc) from {lo:.3f} (blue) to {hi:.3f} (red) world units; acc < {min_acc} black"

@@ -1,0 +1,343 @@
+"""Validation and end-of-run outputs of a :class:`~nerfpipe.training.trainer.Trainer`.
+
+Validation renders the first views of the val split (the test split, then train, when the
+scene has no val images) with :func:`~nerfpipe.outputs.render.render_cameras`, scaled by ``eval_scale``,
+and scores PSNR and SSIM (kornia.metrics, 11-px Gaussian window) against the ground truth
+composited on the evaluation background.
+"""
+
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from nerfpipe.data.background import background_colors, composite_pixels
+from nerfpipe.data.rays import camera_rays
+from nerfpipe.functional.metrics import psnr_from_mse
+from nerfpipe.outputs.render import FramePlan, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, to_uint8
+from nerfpipe.training.checkpoint import CHECKPOINT
+from nerfpipe.training.runs import write_json
+from nerfpipe.util.errors import require
+
+
+def dependencies(cfg) -> "tuple[tuple[str, str], ...]":
+    """The optional modules validation and :func:`finish` will need under the trainer config ``cfg``
+    (scores always; figures and videos when written), checked before training starts."""
+    from nerfpipe.outputs.artifacts import SEQUENCE_DEPENDENCIES
+    from nerfpipe.outputs.plots import PLOT_DEPENDENCIES
+
+    deps = [("kornia", "kornia")]
+    if cfg.write_outputs:
+        deps += PLOT_DEPENDENCIES
+        deps += SEQUENCE_DEPENDENCIES if cfg.video_frames else ()
+    return tuple(deps)
+
+
+def eval_split(scene) -> str:
+    for split in ("val", "test", "train"):
+        idx = scene.splits.get(split)
+        if idx is not None and len(idx) and all(scene.images.has(int(i)) for i in idx):
+            return split
+    raise ValueError("scene has no images to validate on")
+
+
+def ground_truth(scene, index: int, background, size: "tuple[int, int]") -> torch.Tensor:
+    """Image ``index`` as float ``[H, W, 3]`` on ``background``, area-resized to ``size`` (w, h)."""
+    img = composite_pixels(torch.from_numpy(scene.images.load(index)), background)
+    if (img.shape[1], img.shape[0]) != tuple(size):
+        img = F.interpolate(img.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")[0].permute(1, 2, 0)
+    return img
+
+
+SSIM_WINDOW = 11
+"""Side of SSIM's Gaussian window in pixels (scored views are never made smaller than this)."""
+
+
+def score(pred: torch.Tensor, gt: torch.Tensor) -> "tuple[float, float]":
+    """(PSNR, SSIM) of two ``[H, W, 3]`` images in [0, 1]."""
+    kornia = require("kornia", "kornia")
+    a, b = pred.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float().to(pred.device)
+    return float(kornia.metrics.psnr(a, b, 1.0)), float(kornia.metrics.ssim(a, b, SSIM_WINDOW).mean())
+
+
+def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """PSNR on the right half of an image after an affine colour map (3x3 + offset) fitted by least squares
+    on its left half: how well a held-out view is predicted up to its own exposure and white balance
+    (the NeRF-W / nerfbaselines protocol for per-image appearance; the map is fitted on pixels not scored)."""
+    w = pred.shape[1] // 2
+    x = pred.reshape(pred.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
+    y = gt.to(pred.device).reshape(gt.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
+    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)
+    m = torch.linalg.lstsq(a, y).solution  # [4, 3]
+    right = pred[:, w:].reshape(-1, 3).double()
+    mapped = (torch.cat([right, torch.ones_like(right[:, :1])], dim=-1) @ m).clamp(0, 1)
+    return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
+
+
+VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
+"""Fields of one validation in ``history.json`` (the trainer's ``history["val"]`` rows)."""
+
+FINAL_SHARE = 0.25
+"""Under a wall-clock budget (:attr:`~nerfpipe.training.trainer.TrainerConfig.time_budget`), the share of it kept for
+what follows training: the final evaluation, the figures and the videos."""
+EVAL_SHARE = 0.5
+"""Of the time left when training stops, the share the final evaluation may take (the figures come next,
+then the videos get what is left)."""
+MIN_FINAL_VIEWS = 4
+"""Under a budget, the final evaluation scores at least this many views (smaller ones when they do not fit)."""
+MIN_VIDEO_FRAMES = 12
+"""Under a budget, the videos keep at least this many frames (smaller ones when they do not fit; none when even
+that does not fit)."""
+VALIDATION_SHARE = 0.1
+"""Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
+of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
+PROBE = 4
+"""Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side."""
+ENCODE_SHARE = 0.2
+"""Of the video's time, the share kept for encoding the GIFs and the MP4."""
+
+
+def eval_views(scene, num_views: int = 0) -> "list[int]":
+    """Indices of the first ``num_views`` views of the evaluation split (0: all)."""
+    idx = [int(i) for i in scene.splits[eval_split(scene)]]
+    return idx[:num_views] if num_views else idx
+
+
+def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int) -> "float | None":
+    """PSNR on the right half of a view rendered with the appearance the model fits to its left half
+    (:meth:`~nerfpipe.models.base.Model.fitted_appearance`: NeRF-W's protocol for held-out views of photo
+    collections); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
+    half = rays.shape[1] // 2
+    gt = gt.to(rays.origins)
+    background = background.to(gt)
+    with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background) as fitted:
+        if not fitted:
+            return None
+        with torch.no_grad():
+            rgb = render_rays(model, rays[:, half:].reshape(-1), background, chunk)[0].clamp(0, 1)
+    return psnr_from_mse(float(((rgb - gt[:, half:].reshape(-1, 3)) ** 2).mean()))
+
+
+def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
+                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False) -> dict:
+    """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
+    with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
+
+    Returns the per-view ``psnr``, ``ssim``, ``fitted_psnr`` lists, the render ``seconds`` and ``pixels``
+    (for the time one pixel takes), with ``keep_first`` the first rendered view as ``first``, and with an
+    ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr. With
+    ``fit_appearance``, models with per-image appearance also give ``appearance_fitted_psnr``
+    (:func:`appearance_fitted_psnr`; its time is not in ``seconds``).
+    """
+    out = {"psnr": [], "ssim": [], "fitted_psnr": [], "appearance_fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
+    cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
+    views = enumerate(sizes)
+    if progress:
+        from nerfpipe.util.progress import track
+
+        views = track(views, "eval", total=len(sizes))
+    for i, (w, h) in views:
+        if i and deadline is not None and time.monotonic() > deadline:
+            break
+        start = time.perf_counter()
+        cam = resize_cameras(cams[i : i + 1], w, h).to(device)
+        view = render_cameras(model, cam, chunk, background)[0]
+        out["seconds"] += time.perf_counter() - start
+        out["pixels"] += w * h
+        gt = ground_truth(scene, idx[i], background, (w, h))
+        p, s = score(view.rgb, gt)
+        out["psnr"].append(p)
+        out["ssim"].append(s)
+        out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
+        if fit_appearance:
+            fitted = appearance_fitted_psnr(model, camera_rays(cam, 0), gt, background, chunk)
+            if fitted is not None:
+                out["appearance_fitted_psnr"].append(fitted)
+        if lpips is not None:
+            with torch.no_grad():
+                out["lpips"].append(lpips(view.rgb, gt))
+        if keep_first and i == 0:
+            out["first"] = view
+    return out
+
+
+def eval_sizes(scene, idx: "list[int]", scale: float, max_size: "int | None") -> "list[tuple[int, int]]":
+    """(w, h) of views ``idx`` at ``scale``, the longer side capped at ``max_size``."""
+    cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
+    return [capped_size(int(w), int(h), scale, max_size) for w, h in zip(cams.width, cams.height)]
+
+
+def _eval_sizes(scene, idx: "list[int]", cfg, scale: float = 1.0) -> "list[tuple[int, int]]":
+    return eval_sizes(scene, idx, cfg.eval_scale * scale, cfg.eval_max_size)
+
+
+def lpips_scorer(device: str):
+    """``(scorer, None)`` with LPIPS (AlexNet) when the lpips package and torchvision's AlexNet weights are on
+    this machine, else ``(None, why not)``: evaluation never downloads anything."""
+    import importlib.util
+
+    if importlib.util.find_spec("lpips") is None:
+        return None, "the lpips package is not installed"
+    weights = Path(torch.hub.get_dir()) / "checkpoints"
+    if not any(weights.glob("alexnet-*.pth")):
+        return None, f"AlexNet weights are not in {weights}"
+    import lpips
+
+    net = lpips.LPIPS(net="alex", verbose=False).to(device).eval()
+    return lambda a, b: float(net(a.permute(2, 0, 1)[None] * 2 - 1, b.permute(2, 0, 1)[None].to(a) * 2 - 1)), None
+
+
+def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False) -> "tuple[float, float]":
+    """Mean (PSNR, SSIM) over ``num_views`` val views (0: all) at ``scale`` of the configured size (those begun
+    before ``deadline``); logs it, keeps a snapshot of view 0 and the time one rendered pixel took
+    (``trainer.seconds_per_pixel``). The ``final`` one also fits per-image appearance to the left halves
+    (``trainer.last_appearance_fitted_psnr``, None without)."""
+    scene, cfg = trainer.scene, trainer.cfg
+    idx = eval_views(scene, num_views)
+    bg = background_colors(trainer.eval_bg, 1)[0]
+    scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True,
+                         deadline=deadline, fit_appearance=final)
+    fitted = scores["appearance_fitted_psnr"]
+    trainer.last_appearance_fitted_psnr = _mean(fitted) if fitted else None
+    idx = idx[: len(scores["psnr"])]
+    save_snapshot(trainer.out / "progress" / f"step_{trainer.step:07d}.png", to_uint8(scores["first"].rgb))
+    psnr, ssim = _mean(scores["psnr"]), _mean(scores["ssim"])
+    trainer.history["val"].append([trainer.step, trainer.train_seconds, psnr, ssim, len(idx)])
+    trainer.last_fitted_psnr = _mean(scores["fitted_psnr"])
+    trainer.seconds_per_pixel = scores["seconds"] / max(scores["pixels"], 1)
+    trainer.validation_seconds += scores["seconds"]
+    return psnr, ssim
+
+
+def validation_due(trainer) -> bool:
+    """Whether an intermediate validation fits (always, without a wall-clock budget; see :data:`VALIDATION_SHARE`)."""
+    if trainer.cfg.time_budget is None:
+        return True
+    return trainer.step > 0 and trainer.validation_seconds <= VALIDATION_SHARE * trainer.wall_elapsed()
+
+
+def _mean(values: "list[float]") -> float:
+    return sum(values) / len(values)
+
+
+def save_snapshot(path: Path, image) -> None:
+    import imageio.v3 as iio
+
+    from nerfpipe.util.atomic import atomic_write
+
+    atomic_write(path, lambda p: iio.imwrite(p, image, extension=".png"))
+
+
+def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
+    """The final validation: every view (or ``final_eval_views``) at the configured size, or under a
+    wall-clock budget what fits :data:`EVAL_SHARE` of the time left (recorded in ``plan``)."""
+    cfg, scene = trainer.cfg, trainer.scene
+    idx = eval_views(scene, cfg.final_eval_views)
+    if trainer.wall_left() is None:
+        return (*validate(trainer, cfg.final_eval_views, final=True), len(idx))
+    start = time.perf_counter()
+    share = EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE  # the figures and videos come after
+    allowed = share * trainer.wall_left()
+    (w, h), = _eval_sizes(scene, idx[:1], cfg)
+    pw, ph = max(1, w // PROBE), max(1, h // PROBE)  # the trained model's speed (per-view costs make it an overestimate)
+    probe = resize_cameras(scene.cameras[torch.tensor(idx[:1], dtype=torch.long)], pw, ph).to(cfg.device)
+    probe_start = time.perf_counter()
+    render_cameras(trainer.model, probe, cfg.chunk, background_colors(trainer.eval_bg, 1)[0])
+    per_view = (time.perf_counter() - probe_start) / (pw * ph) * w * h
+    min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
+    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
+    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True)
+    views = trainer.history["val"][-1][-1]
+    (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
+    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h],
+                          "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
+    return psnr, ssim, views
+
+
+def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
+    """:func:`~nerfpipe.outputs.render.plan_frames`, and when even ``min_count`` smallest views do not fit, as many
+    of those as do (never fewer than ``at_least``)."""
+    fit = plan_frames(count, min_count, per, allowed, min_scale)
+    if fit.estimated_seconds > allowed:
+        cost = per * fit.scale**2
+        n = max(at_least, min(fit.frames, int(max(allowed, 0.0) // max(cost, 1e-9))))
+        fit = FramePlan(n, fit.scale, n * cost)
+    return fit
+
+
+def _video(trainer, metrics: dict, plan: dict) -> None:
+    """Orbit/test-path videos: ``video_frames`` at ``video_scale``, or under a budget what fits the time left."""
+    from nerfpipe.data.orbit import path_cameras
+    from nerfpipe.outputs.artifacts import write_sequence
+    from nerfpipe.outputs.novel_views import RenderConfig, render_sequence
+
+    cfg = trainer.cfg
+    cams = path_cameras(trainer.scene, "test", cfg.video_frames)
+    w, h = (max(1, round(int(v) * cfg.video_scale)) for v in (cams.width[0], cams.height[0]))
+    left = trainer.wall_left()
+    if left is not None:
+        per_frame = (trainer.seconds_per_pixel or 0.0) * w * h
+        fit = _fit(cfg.video_frames, min(MIN_VIDEO_FRAMES, cfg.video_frames), per_frame, (1 - ENCODE_SHARE) * left, at_least=0)
+        w, h = max(1, round(w * fit.scale)), max(1, round(h * fit.scale))
+        plan["video"] = {"frames": fit.frames, "of": cfg.video_frames, "scale": fit.scale, "size": [w, h], "estimated_seconds": fit.estimated_seconds}
+        if fit.frames < min(MIN_VIDEO_FRAMES, cfg.video_frames):  # a shorter orbit shows nothing: none at all
+            plan["video"]["skipped"] = "no time left in the budget"
+            return
+    frames = len(cams) if left is None else fit.frames
+    start = time.perf_counter()
+    bg = background_colors(trainer.eval_bg, 1)[0]  # the one renderer of camera paths (nerfpipe render, the render stage)
+    views, _ = render_sequence(trainer.model, trainer.scene, RenderConfig("test", frames, size=f"{w}x{h}", chunk=cfg.chunk), bg, cfg.device)
+    metrics["video"] = write_sequence(views, trainer.out, "orbit", depth=True)
+    if "video" in plan:
+        plan["video"]["seconds"] = time.perf_counter() - start
+    metrics["depth_colormap"] = metrics["video"]["depth_mapping"]
+
+
+def finish(trainer) -> dict:
+    """Final validation, metrics.json, plots and videos; returns the metrics.
+
+    Under a wall-clock budget the final validation and the videos are sized to what is left of it
+    (``budget_plan`` in metrics.json says what was chosen); ``nerfpipe eval RUN`` scores the full protocol.
+    """
+    from nerfpipe.outputs import plots
+
+    cfg, out = trainer.cfg, trainer.out
+    plan: dict = {}
+    psnr, ssim, views = _final_eval(trainer, plan)
+    stats = trainer.model.stats()
+    metrics = {
+        "val_psnr": psnr,
+        "val_ssim": ssim,
+        "val_psnr_colour_fitted": trainer.last_fitted_psnr,
+        **({} if trainer.last_appearance_fitted_psnr is None else {"val_psnr_appearance_fitted": trainer.last_appearance_fitted_psnr}),
+        "val_views": views,
+        "eval_scale": cfg.eval_scale * plan.get("final_eval", {}).get("scale", 1.0),
+        "eval_max_size": cfg.eval_max_size,
+        "train_seconds": trainer.train_seconds,
+        "iterations": trainer.step,
+        "seconds_per_iteration": trainer.train_seconds / max(trainer.step, 1),
+        "rays_per_step": cfg.rays_per_step,
+        "processes": trainer.world.size,
+        "resumed_at": trainer.history.get("resumed_at", []),
+        "model": trainer.model_name,
+        **stats,
+    }
+    checkpoint = out / CHECKPOINT
+    if checkpoint.is_file():  # model, optimizer moments and random streams, as stored
+        metrics["checkpoint_mb"] = checkpoint.stat().st_size / 2**20
+    start = time.perf_counter()
+    if cfg.write_outputs:
+        plots.plot_psnr(trainer.history, out / "psnr.png")
+        plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
+        spr = stats.get("samples_per_ray", 64)
+        plots.plot_cameras(trainer.scene, trainer.sampler, out / "cameras.png", num_samples=int(spr))
+    plan["figures_seconds"] = time.perf_counter() - start
+    if cfg.video_frames and cfg.write_outputs:
+        _video(trainer, metrics, plan)
+    if cfg.time_budget is not None:
+        metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE, "training_stopped_at": trainer.training_stopped_at,
+                                  "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
+    write_json(out / "metrics.json", metrics)
+    write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})
+    return metrics

@@ -1,0 +1,143 @@
+"""Training rays: random pixels drawn uniformly across all images of a split.
+
+Images are loaded once and kept as one uint8 tensor of pixels ``[P, C]`` (images may differ in
+size); a batch picks pixel indices, finds their camera through per-image offsets and generates
+rays with :func:`nerfpipe.data.rays.generate_rays`. RGBA pixels are composited on the batch's
+background colour (random per ray in training when the mode is ``random``).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nerfpipe.data.background import background_colors, composite_pixels
+from nerfpipe.data.rays import RayBundle, generate_rays
+from nerfpipe.data.scene import SceneData
+from nerfpipe.util.typing import Float, Tensor, UInt8
+
+def load_split_pixels(scene: SceneData, split: str) -> "tuple[Tensor, Tensor]":
+    """All pixels of a split as uint8 ``[P, C]`` and the offsets ``[n+1]`` of each image."""
+    chans = 4 if scene.has_alpha else 3
+    flat, offsets = [], [0]
+    for i in scene.splits[split]:
+        img = np.asarray(scene.images.load(int(i)))
+        if img.shape[-1] < chans:
+            img = np.concatenate([img, np.full((*img.shape[:2], chans - img.shape[-1]), 255, np.uint8)], axis=-1)
+        flat.append(torch.from_numpy(np.ascontiguousarray(img[..., :chans])).reshape(-1, chans))
+        offsets.append(offsets[-1] + flat[-1].shape[0])
+    return torch.cat(flat), torch.tensor(offsets, dtype=torch.long)
+
+
+@dataclass
+class PixelBatch:
+    """Rays with their target colours and the background the targets were composited on."""
+
+    rays: RayBundle
+    rgb: Float[Tensor, "num_rays 3"]
+    background: Float[Tensor, "num_rays 3"]
+    depth: "Float[Tensor, 'num_rays'] | None" = None
+    """Distance along the ray at which a sparse 3D point was seen (NaN for rays without one); None
+    when the batch has no such rays."""
+
+
+class TrackRays:
+    """Rays through the keypoints of the sparse points' track observations (COLMAP), with the distance
+    of the observed point along each ray and the keypoint's pixel colour.
+
+    This is the evidence SfM already has about where rays stop (as in DS-NeRF): the space in front
+    of each observed point is empty. Uses the points' tracks (:class:`nerfpipe.data.scene.Points3D`
+    ``track_*``); observations of cameras outside the split, with keypoints outside the image or
+    points behind the camera are dropped.
+    """
+
+    def __init__(self, scene: SceneData, split: str, pixels: UInt8[Tensor, "P C"], offsets: Tensor) -> None:
+        pts = scene.points
+        local = torch.full((len(scene.cameras),), -1, dtype=torch.long)
+        local[torch.as_tensor(scene.splits[split], dtype=torch.long)] = torch.arange(len(scene.splits[split]))
+        cam = local[pts.track_camera]
+        uv = pts.track_xy.double()
+        xyz = pts.xyz.double()[pts.track_point]
+        cameras = scene.split_cameras(split)
+        keep = cam >= 0
+        cam, uv, xyz = cam[keep], uv[keep], xyz[keep]
+        w, h = cameras.width[cam].double(), cameras.height[cam].double()
+        inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
+        cam, uv, xyz = cam[inside], uv[inside], xyz[inside]
+        rays = generate_rays(cameras, cam, uv.to(cameras.fx.dtype))
+        t = ((xyz.to(rays.origins) - rays.origins) * rays.directions).sum(-1)
+        front = t > 0
+        self.rays = rays[front].to(dtype=torch.float32)
+        self.t = t[front].float()
+        col, row = uv[front, 0].long(), uv[front, 1].long()
+        cam = cam[front]
+        self.pixels = pixels[offsets[cam] + row * cameras.width[cam].long() + col]
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def sample(self, num_rays: int, generator: "torch.Generator | None") -> "tuple[RayBundle, Tensor, Tensor]":
+        """``(rays, uint8 pixels, distances)`` of ``num_rays`` observations drawn uniformly."""
+        i = torch.randint(len(self), (num_rays,), generator=generator)
+        return self.rays[i], self.pixels[i], self.t[i]
+
+
+class PixelSampler:
+    """Uniform random pixels across every image of a split."""
+
+    def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu", track_rays: int = 0) -> None:
+        self.cameras = scene.split_cameras(split).to(device)
+        self.widths = self.cameras.width.cpu()
+        """Width of each image, on the host (indexing the device's copy would read it back every step)."""
+        self.pixels, self.offsets = load_split_pixels(scene, split)
+        self.num_pixels = int(self.offsets[-1])
+        self.background = background
+        self.device = torch.device(device)
+        has_tracks = scene.points is not None and scene.points.has_tracks
+        self.tracks = TrackRays(scene, split, self.pixels, self.offsets) if track_rays and has_tracks else None
+        self.track_rays = track_rays if self.tracks is not None and len(self.tracks) else 0
+        """Rays per batch through sparse points (the rest are uniform pixels)."""
+
+    def __len__(self) -> int:
+        return self.num_pixels
+
+    def sample(self, num_rays: int, generator: "torch.Generator | None" = None) -> PixelBatch:
+        """``num_rays`` rays: uniform pixels, and ``track_rays`` of them through sparse points."""
+        k = min(self.track_rays, num_rays // 2)
+        batch = self._uniform(num_rays - k, generator)
+        if not k:
+            return batch
+        rays, pixels, t = self.tracks.sample(k, generator)
+        bg = background_colors(self.background, k, generator)
+        nan = torch.full((num_rays - k,), float("nan"))
+        return PixelBatch(
+            rays=_cat_rays(batch.rays, rays.to(self.device)),
+            rgb=torch.cat([batch.rgb, self._upload(composite_pixels(pixels, bg))]),
+            background=torch.cat([batch.background, self._upload(bg)]),
+            depth=self._upload(torch.cat([nan, t])),
+        )
+
+    def _uniform(self, num_rays: int, generator: "torch.Generator | None") -> PixelBatch:
+        idx = torch.randint(len(self), (num_rays,), generator=generator)
+        cam = torch.searchsorted(self.offsets, idx, right=True) - 1
+        local = idx - self.offsets[cam]
+        width = self.widths[cam]
+        uv = torch.stack([local % width, local // width], dim=-1).float() + 0.5
+        bg = background_colors(self.background, num_rays, generator)
+        rgb = composite_pixels(self.pixels[idx], bg)
+        rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv))
+        return PixelBatch(rays=rays, rgb=self._upload(rgb), background=self._upload(bg))
+
+    def _upload(self, t: Tensor) -> Tensor:
+        """A batch tensor drawn on the host, on the sampler's device: to CUDA through pinned memory without
+        blocking (a copy from pageable memory makes the host wait for the stream, once per tensor and step)."""
+        if self.device.type != "cuda":
+            return t.to(self.device)
+        return t.pin_memory().to(self.device, non_blocking=True)
+
+
+def _cat_rays(a: RayBundle, b: RayBundle) -> RayBundle:
+    return RayBundle(
+        origins=torch.cat([a.origins, b.origins]), directions=torch.cat([a.directions, b.directions]),
+        cam_idx=torch.cat([a.cam_idx, b.cam_idx]), z_scale=torch.cat([a.z_scale, b.z_scale]),
+    )

@@ -1,0 +1,420 @@
+"""The training loop shared by every model: random rays across all training images, Adam,
+validation at intervals, named callbacks, atomic checkpoints, resume, and the run's outputs.
+
+Usable from Python::
+
+    trainer = Trainer(TrainerConfig(iters=200), scene, "vanilla", VanillaConfig(), Path("runs/lego"))
+    metrics = trainer.train()
+
+Training time (``train_seconds``, the ``train_budget``) counts sampling, forward, backward, the
+optimiser step and callbacks; validation, checkpoints and plots are excluded.
+
+A trainer leaves the process as it found it: the model is initialised from ``seed`` with torch's
+global stream seeded only for that call (:func:`nerfpipe.util.scoped.seeded_init`), every later random
+draw comes from the run's own generators (``sampler_rng`` for rays and backgrounds, the model's
+``generator`` for jitter and refreshes; both saved in the checkpoint, so a resumed run draws what an
+uninterrupted one would), and ``num_threads`` holds only while :meth:`Trainer.train` runs.
+
+Under torchrun (``torchrun --nproc-per-node N -m nerfpipe train ...``) the N processes train one
+model data-parallel (:mod:`nerfpipe.training.distributed`): ``rays_per_step`` is the step's total, each rank
+draws its share from its own streams, gradients are summed over the ranks, the model's own state
+(occupancy grid, box) is sent from rank 0, and rank 0 alone validates and writes. After torchrun
+restarts a failed group the trainer resumes from the checkpoint, with the same or another N.
+"""
+
+import contextlib
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from nerfpipe.data.background import backgrounds
+from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.scene import SceneData, check_images
+from nerfpipe.functional.metrics import psnr_from_mse
+from nerfpipe.models.base import Callback, Model, SceneInfo
+from nerfpipe.training import distributed
+from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
+from nerfpipe.training.pixel_sampler import PixelSampler
+from nerfpipe.training.runs import CONFIG, load_model_state, to_dict, write_json
+from nerfpipe.util.devices import check_device
+from nerfpipe.util.errors import NerfpipeError, refuse_unless, require_all
+from nerfpipe.util.paths import check_output_folder
+from nerfpipe.util.runlock import run_lock
+from nerfpipe.util.scoped import continued_generator, seeded_init, torch_threads
+from nerfpipe.util.typing import Float, Tensor
+
+
+LOG_SECONDS = 1.0
+"""The training losses are read back from the device (a host sync) and logged at most this often, and before
+every validation, checkpoint and the end."""
+
+MAX_RAYS_PER_STEP = 1 << 22
+"""More rays per step than this (4 M) would not fit in memory with any model's samples: a typo, refused."""
+
+
+@dataclass
+class TrainerConfig:
+    """How to train a model."""
+
+    iters: int = 1000
+    """Training iterations (optimiser steps)."""
+    train_budget: "float | None" = None
+    """Stop after this many seconds of training (validation excluded), whichever of the two comes first;
+    the iteration running when the budget runs out is finished."""
+    time_budget: "float | None" = None
+    """Wall-clock seconds for the whole run, end to end: from when the trainer is made (or the ``started`` it is
+    given: ``nerfpipe train`` counts from the process's start), training, validations, the final evaluation,
+    figures and videos. Training stops when :data:`~nerfpipe.training.evaluation.FINAL_SHARE` of it is
+    left; the final evaluation's views and size and the videos' frames and size are then chosen to fit
+    (``budget_plan`` in metrics.json). ``nerfpipe eval RUN`` scores the full protocol afterwards."""
+    clock: str = "wall"
+    """What ``train_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
+    seconds divided by the torch threads; steadier on a shared machine)."""
+    rays_per_step: int = 10000
+    """Rays per iteration, drawn uniformly from all pixels of all training images."""
+    track_rays: int = 512
+    """Rays per iteration (of ``rays_per_step``) through the sparse points' track observations, when the
+    scene has them (COLMAP): their colour and the distance of the point along them, for models with a
+    depth loss (0: uniform pixels only)."""
+    lr: float = 5e-4
+    """Adam learning rate (models may set their own per parameter group)."""
+    eval_every: int = 100
+    """Validate every this many iterations (0: only at the end)."""
+    eval_views: int = 1
+    """Validation views rendered at each intermediate validation (the first ones of the val split)."""
+    final_eval_views: int = 0
+    """Validation views for the final metrics (0: all of the val split)."""
+    eval_scale: float = 1.0
+    """Resolution factor of validation renders (ground truth is area-resized to match)."""
+    eval_max_size: "int | None" = 800
+    """Longer side of validation renders in pixels at most, after ``eval_scale`` (phone photographs are
+    scored at a reduced size; None: no cap)."""
+    seed: int = 0
+    """Seed of model initialisation, ray sampling and jitter (CPU runs are deterministic)."""
+    device: str = "auto"
+    """Torch device: auto (CUDA when present, else CPU: :func:`nerfpipe.util.devices.check_device`), cpu, cuda, cuda:N, mps."""
+    num_threads: "int | None" = None
+    """CPU threads for torch while training (None: as the process has them; restored afterwards). On a
+    loaded machine 1 can be much faster for small models."""
+    background: str = "auto"
+    """black | white | random | auto (random in training and white at evaluation for RGBA data, else black)."""
+    checkpoint_every: int = 500
+    """Write checkpoint.safetensors every this many iterations (and always at the end)."""
+    chunk: int = 4096
+    """Rays per forward pass when rendering whole images."""
+    video_frames: int = 60
+    """Frames of the orbit/test-path videos written at the end (0: no videos)."""
+    video_scale: float = 1.0
+    """Resolution factor of the videos."""
+    resume: bool = False
+    """Continue from the run folder's checkpoint.safetensors."""
+    write_outputs: bool = True
+    """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
+
+    def __post_init__(self) -> None:
+        """Impossible values are one clear error before anything runs or is written (not a run that never ends)."""
+        checks = (
+            ("iters", self.iters >= 0, "0 or more"), ("rays_per_step", 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"between 1 and {MAX_RAYS_PER_STEP}"),
+            ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
+            ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
+            ("train_budget", self.train_budget is None or self.train_budget >= 0, "0 or more seconds"),
+            ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
+            ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
+            ("eval_views", self.eval_views >= 1, "at least 1"), ("final_eval_views", self.final_eval_views >= 0, "0 or more"),
+            ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
+            ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
+            ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
+            ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
+            ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
+            ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
+        )
+        refuse_unless((name, ok, what, getattr(self, name)) for name, ok, what in checks)
+        check_device(self.device)
+
+
+def scene_info(scene: SceneData) -> SceneInfo:
+    cams = scene.split_cameras("train")
+    pixels = int((cams.width * cams.height).max()) if len(cams) else 0
+    rel = (cams.fx.double() / (cams.width.double() ** 2 + cams.height.double() ** 2).sqrt()).reshape(-1)
+    q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
+    spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
+    return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
+                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, pixel_footprint=pixel_footprint(cams, scene.aabb))
+
+
+def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
+    """Median over cameras of (distance to the box centre) / (focal length in pixels): one pixel's width there."""
+    if not len(cams):
+        return 0.0
+    centre = aabb.double().mean(0)
+    dist = (cams.world_from_cam[..., :3, 3].double().reshape(-1, 3) - centre).norm(dim=-1)
+    focal = (0.5 * (cams.fx + cams.fy)).double().reshape(-1)
+    return float((dist / focal).median())
+
+
+def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
+    """Forget the optimiser state of parameters a model resized in a callback (e.g. grids
+    resampled to a tightened box): Adam's moments no longer match their shape."""
+    for p, st in list(optimizer.state.items()):
+        if any(isinstance(v, torch.Tensor) and v.ndim > 0 and v.shape != p.shape for v in st.values()):
+            optimizer.state[p] = {}
+
+
+def share(total: int, world: distributed.World) -> int:
+    """This rank's part of ``total`` (rays per step): equal parts, the remainder to the first ranks."""
+    return total // world.size + (world.rank < total % world.size)
+
+
+class Trainer:
+    """Trains one model on one scene into a run folder."""
+
+    def __init__(self, cfg: TrainerConfig, scene: SceneData, model_name: str, model_config, out_dir: Path, started: "float | None" = None) -> None:
+        """Everything that can be refused is refused here, before training and before ``out_dir`` is made:
+        the output folder, the optional modules the outputs need, and every image the run will read.
+        ``started`` (a ``time.monotonic()`` value, default now) is when the ``time_budget`` began."""
+        from nerfpipe.training import evaluation
+
+        self.started = time.monotonic() if started is None else started
+        cfg = replace(cfg, device=check_device(cfg.device))  # auto resolved once: the run's config records the device used
+        self.world = distributed.world(cfg.device)
+        if self.world.active:
+            refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
+            cfg = replace(cfg, device=distributed.device_for(cfg.device, self.world))
+        self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
+        require_all(evaluation.dependencies(cfg))
+        self.model_name, self.model_config = model_name, model_config
+        self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
+        model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene)), cfg.seed)
+        self.model: Model = model.to(cfg.device)
+        self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
+        if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
+            self.model.generator.manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
+        # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
+        fused = torch.device(cfg.device).type in ("cpu", "cuda")
+        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
+        for group in self.optimizer.param_groups:  # the schedule scales these (saved with the optimiser)
+            group.setdefault("initial_lr", group["lr"])
+        self.generator = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
+        self.rays = share(cfg.rays_per_step, self.world)
+        """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
+        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world))
+        self.sync: "distributed.BufferSync | None" = None
+        split = evaluation.eval_split(scene)
+        if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
+            check_images(scene, scene.splits[split])
+        self.step, self.train_seconds = 0, 0.0
+        self.history = {"train": [], "val": []}  # train rows: [step, seconds, psnr]; val: [.., psnr, ssim, views]
+        self._losses: "list[tuple[int, float, Tensor]]" = []  # (step, seconds, MSE on the device) not yet in history
+        self._logged_at = 0.0  # perf_counter of the latest flush_losses
+        self.hooks = self.model.callbacks()
+        self.seconds_per_pixel: "float | None" = None  # of the latest validation render
+        self.validation_seconds = 0.0  # rendering for validations so far
+        self.training_stopped_at: "float | None" = None  # wall seconds after start
+        self.final_started_at: "float | None" = None  # after the final checkpoint
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        return {
+            "step": self.step,
+            "train_seconds": self.train_seconds,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "torch_rng": self.model.generator.get_state(),  # the model's stream (name kept: older checkpoints resume)
+            "sampler_rng": self.generator.get_state(),
+            "history": self.history,
+        }
+
+    def resume_from(self, path: Path) -> None:
+        """Continue from the checkpoint at ``path``; one that does not fit this model and training is one line."""
+        state = load_checkpoint(path)
+        load_model_state(self.model, state["model"], path, self.model_name)
+        try:
+            self._load_training_state(state)
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise NerfpipeError(f"checkpoint does not fit this training ({' '.join(str(exc).split())[:300]})", path) from exc
+
+    def load_state(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self._load_training_state(state)
+
+    def _load_training_state(self, state: dict) -> None:
+        """Everything of a checkpoint but the model's tensors: optimiser, random streams, step and history."""
+        initial = [group["initial_lr"] for group in self.optimizer.param_groups]
+        self.optimizer.load_state_dict(state["optimizer"])  # replaces the group dicts
+        for group, lr in zip(self.optimizer.param_groups, initial):
+            group["initial_lr"] = lr
+        ranks = state.get("ranks", {"sampler_rng": state["sampler_rng"][None], "torch_rng": state["torch_rng"][None]})
+        if self.world.rank < len(ranks["sampler_rng"]):  # else a rank the saved run did not have: its fresh streams
+            stream = ranks["torch_rng"][self.world.rank].clone()  # own storage: set_state reads from offset 0 (a row crashes it)
+            if stream.numel() == self.model.generator.get_state().numel():  # else saved on another device type:
+                self.model.generator.set_state(stream)  # that stream cannot go on here, this run's own does
+            self.generator.set_state(ranks["sampler_rng"][self.world.rank].clone())
+        self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
+        self.history["resumed_at"] = [*self.history.get("resumed_at", []), self.step]
+
+    def save(self) -> None:
+        """Rank 0 writes the checkpoint, with every rank's random streams (a collective in a group)."""
+        ranks = None
+        if self.world.active:
+            ranks = {"sampler_rng": distributed.gather_bytes(self.generator.get_state()),
+                     "torch_rng": distributed.gather_bytes(self.model.generator.get_state())}
+        if self.world.writer:
+            save_checkpoint(self.out / CHECKPOINT, self.state() if ranks is None else {**self.state(), "ranks": ranks})
+
+    def write_config(self) -> None:
+        write_json(
+            self.out / CONFIG,
+            {"data": str(Path(self.scene.source).resolve()), "model": self.model_name, "model_config": to_dict(self.model_config), "trainer": to_dict(self.cfg)},
+        )
+
+    # ------------------------------------------------------------------ loop
+    def fire(self, place: Callback) -> None:
+        for hook in self.hooks.get(place, []):
+            hook(self.step)
+
+    def train_step(self) -> Tensor:
+        """One optimiser step; returns the colour MSE of the batch, a 0-dim tensor on the device (reading it
+        is a host sync: the loop reads the steps' losses together when it logs them, :meth:`flush_losses`)."""
+        self.fire(Callback.BEFORE_TRAIN_ITERATION)
+        if self.sync is not None:
+            self.sync()  # the hooks' changes (occupancy grid, box) as rank 0 made them
+        self.apply_lr()
+        batch = self.sampler.sample(self.rays, self.generator)
+        outputs = self.model.get_outputs(batch.rays, batch.background)
+        losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
+        self.optimizer.zero_grad(set_to_none=True)
+        sum(losses.values()).backward()
+        mse = torch.mean((outputs.rgb.detach() - batch.rgb) ** 2)
+        if self.world.active:  # the gradient (and the MSE) over the union of the ranks' rays
+            weight = self.rays / self.cfg.rays_per_step
+            params = [p for group in self.optimizer.param_groups for p in group["params"]]
+            (total,) = distributed.all_reduce_gradients(params, weight, [weight * float(mse)])
+            mse = torch.full((), total)
+        drop_stale_optimizer_state(self.optimizer)
+        self.optimizer.step()
+        if self.sync is not None:
+            self.sync.mark()
+        self.step += 1
+        self.fire(Callback.AFTER_TRAIN_ITERATION)
+        return mse
+
+    def clock(self) -> float:
+        """Seconds on the configured clock (see :attr:`TrainerConfig.clock`)."""
+        if self.cfg.clock == "cpu":
+            return time.process_time() / max(torch.get_num_threads(), 1)
+        return time.perf_counter()  # "wall": TrainerConfig refuses any other value
+
+    def apply_lr(self) -> None:
+        """Set every group's rate from the model's schedule (on the optimiser's own groups: loading a
+        checkpoint replaces them, so a model must not keep references to the dicts it handed over)."""
+        factor = self.model.lr_factor(self.step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["initial_lr"] * factor
+
+    def wall_elapsed(self) -> float:
+        return time.monotonic() - self.started
+
+    def wall_left(self) -> "float | None":
+        """Seconds left of the ``time_budget`` (never negative); None without one."""
+        return None if self.cfg.time_budget is None else max(0.0, self.cfg.time_budget - self.wall_elapsed())
+
+    def training_window(self) -> "float | None":
+        """Wall seconds after the start at which training stops under a ``time_budget`` (the rest is the final phase's)."""
+        from nerfpipe.training.evaluation import FINAL_SHARE
+
+        return None if self.cfg.time_budget is None else (1 - FINAL_SHARE) * self.cfg.time_budget
+
+    def done(self) -> bool:
+        budget, window = self.cfg.train_budget, self.training_window()
+        if window is not None:  # under torchrun every rank must stop at the same step: the group's slowest clock
+            wall = distributed.maximum(self.wall_elapsed()) if self.world.active else self.wall_elapsed()
+        return (self.step >= self.cfg.iters or (budget is not None and self.train_seconds >= budget)
+                or (window is not None and wall >= window))
+
+    def train(self) -> dict:
+        """Train until ``iters`` or ``train_budget``, then validate and write every output.
+
+        Holds the run folder's lock (:func:`nerfpipe.util.runlock.run_lock`): a second training into the
+        same folder refuses while this one runs. In a torchrun group every rank calls this; rank 0
+        holds the lock and writes, and every rank returns rank 0's metrics."""
+        lock = run_lock(self.out) if self.world.writer else contextlib.nullcontext()
+        with lock, torch_threads(self.cfg.num_threads):
+            metrics = self._train()
+        return distributed.broadcast_object(metrics) if self.world.active else metrics
+
+    def _train(self) -> dict:
+        from nerfpipe.training import evaluation
+        from nerfpipe.util.progress import TrainProgress
+
+        writer = self.world.writer
+        if writer:
+            self.out.mkdir(parents=True, exist_ok=True)
+        resume = self.cfg.resume or self.world.restarts > 0  # torchrun restarted the group: go on from the checkpoint
+        checkpoint = find_checkpoint(self.out) if resume else None
+        if checkpoint is not None:
+            self.resume_from(checkpoint)
+        if self.world.active:
+            distributed.broadcast_module(self.model)  # identical ranks from the start, whatever each built or read
+            self.sync = distributed.BufferSync(self.model)
+        if writer:
+            self.write_config()
+        self.model.train()
+        with TrainProgress(self.cfg, self.step, self.train_seconds, self.training_window()) if writer else _Quiet() as bar:
+            if self.step == 0 and self.cfg.eval_every and writer and evaluation.validation_due(self):
+                evaluation.validate(self, self.cfg.eval_views)  # the starting point of the curves
+            while not self.done():
+                t0 = self.clock()
+                mse = self.train_step()
+                self.train_seconds += self.clock() - t0
+                if self.world.active:  # one clock for the group, so every rank stops at the same step
+                    self.train_seconds = distributed.maximum(self.train_seconds)
+                self._losses.append((self.step, self.train_seconds, mse))
+                if time.perf_counter() - self._logged_at >= LOG_SECONDS:
+                    self.flush_losses(bar)
+                self.periodic(evaluation, bar)
+        self.flush_losses(bar)
+        self.training_stopped_at = self.wall_elapsed()
+        self.fire(Callback.AFTER_TRAIN)
+        self.save()
+        self.final_started_at = self.wall_elapsed()
+        return evaluation.finish(self) if writer else None
+
+    def flush_losses(self, bar=None) -> None:
+        """The training rows of the steps since the last flush into ``history`` (their losses read back from
+        the device together: one host sync) and the progress display updated."""
+        if not self._losses:
+            return
+        mses = torch.stack([m.detach().reshape(()).float() for _, _, m in self._losses]).tolist()
+        self.history["train"] += [[step, seconds, psnr_from_mse(m)] for (step, seconds, _), m in zip(self._losses, mses)]
+        self._losses, self._logged_at = [], time.perf_counter()
+        if bar is not None:
+            step, seconds, psnr = self.history["train"][-1]
+            bar.update(step, seconds, psnr, self.wall_elapsed())
+
+    def periodic(self, evaluation, bar) -> None:
+        every, ck = self.cfg.eval_every, self.cfg.checkpoint_every
+        if (every and self.step % every == 0) or (ck and self.step % ck == 0):
+            self.flush_losses(bar)  # validation and checkpoints see every step's loss
+        if every and self.step % every == 0 and not self.done() and self.world.writer and evaluation.validation_due(self):
+            psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
+            bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")
+        if ck and self.step % ck == 0:
+            self.save()
+
+
+class _Quiet:
+    """The progress display of a rank that does not write (ranks 1 .. N-1 of a group)."""
+
+    def __enter__(self) -> "_Quiet":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def update(self, *args) -> None:
+        pass
+
+    def log(self, text: str) -> None:
+        pass
