@@ -102,7 +102,8 @@ def bounds_from_cameras(cameras: Cameras, center: "Float[Tensor, '3'] | None" = 
 OBJECT_PAD = 0.25
 """Margin of the object region around its points' robust extent, as a fraction of that extent per axis. The
 object's texture-less parts have few sparse points: colmap_mouse's plain lilac end lies 0.2 of the points'
-extent beyond their 98% quantile, so a margin of 0.1 cut the mouse off in the renders and the mesh."""
+extent beyond their 98% quantile, so a margin of 0.1 cut the mouse off in the renders and the mesh. A margin of 0.5
+gave 23.16 dB against 24.26 after 600 steps (27.8 samples per ray against 13.4): the table and fog fill the box."""
 
 OBJECT_REACH = 0.75
 """Points farther from the cameras' focus point than this fraction of the median camera distance are
