@@ -185,6 +185,15 @@ def test_upright_direction_is_the_normal_of_the_right_axes_not_the_mean_image_up
     assert _angle(cams.up.mean(0), true_up) > 15  # what the mean image-up gives
     assert _angle(upright_direction(cams), true_up) < 1e-6
 
+    # a third of them portrait photos stored sideways (turned a quarter either way about their optical axis)
+    quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    turned = torch.stack(ring).clone()
+    for i, turn in ((1, quarter), (4, quarter.T), (7, quarter)):
+        turned[i, :3, :3] = turned[i, :3, :3] @ turn
+    cams = Cameras.create(tilt.apply_world_from_cam(turned), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)
+    assert _angle(cams.up.mean(0), true_up) > 15
+    assert _angle(upright_direction(cams), true_up) < 1e-6
+
     # cameras all facing one way (a facade): the right axes decide nothing along the views; the mean image-up stays
     facade = [look_at((x, -5.0, 1.0), target=(x, 0.0, 1.5)) for x in np.linspace(-2, 2, 5)]
     cams = Cameras.create(torch.stack(facade), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)
