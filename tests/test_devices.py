@@ -53,6 +53,22 @@ def test_every_command_defaults_to_auto():
         assert inspect.signature(getattr(module, name)).parameters["device"].default == devices.AUTO, name
 
 
+def test_the_python_api_defaults_to_auto(tmp_path, monkeypatch):
+    """What other pipelines call (``Pipeline.run``, ``load_run``, a ``StageContext`` they build) picks the
+    best device as the commands do, not the CPU."""
+    import inspect
+
+    from nerfpipe.pipeline.stages import Pipeline, StageContext
+    from nerfpipe.training.runs import load_run
+
+    assert inspect.signature(Pipeline.run).parameters["device"].default == devices.AUTO
+    assert inspect.signature(load_run).parameters["device"].default == devices.AUTO
+    assert StageContext(run_dir=tmp_path).device == devices.auto_device()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert StageContext(run_dir=tmp_path).device == "cuda"
+
+
 def test_the_trainer_records_the_resolved_device(tiny_lego, tmp_path, monkeypatch):
     """``auto`` is resolved once, so config.json and the run's generators name the device the run used."""
     from nerfpipe.models.fast import FastConfig

@@ -49,7 +49,7 @@ from typing import Any
 from nerfpipe.training import distributed
 from nerfpipe.util.atomic import TMP_PREFIX, atomic_path, sweep_temporaries, write_json  # noqa: F401 (re-exported for stages)
 from nerfpipe.util.configs import from_dict, to_dict
-from nerfpipe.util.devices import check_device
+from nerfpipe.util.devices import auto_device, check_device
 from nerfpipe.util.errors import NerfpipeError, require_all
 from nerfpipe.util.paths import check_output_folder
 from nerfpipe.util.registry import STAGE_GROUP, discover
@@ -107,8 +107,8 @@ class StageContext:
     """The run folder; artifacts live here."""
     source: "Path | None" = None
     """The input dataset file or folder (None when the input is in memory)."""
-    device: str = "cpu"
-    """Torch device for stages that compute."""
+    device: str = field(default_factory=auto_device)
+    """Torch device for stages that compute (a resolved name: CUDA when present, else the CPU, by default)."""
     time_budget: "float | None" = None
     """Seconds the whole pipeline may take (None: no limit); see :meth:`time_left`."""
     cache: "dict[str, object]" = field(default_factory=dict)
@@ -310,7 +310,7 @@ class Pipeline:
         *,
         resume: bool = True,
         cache: "dict[str, object] | None" = None,
-        device: str = "cpu",
+        device: str = "auto",
         time_budget: "float | None" = None,
         on_stage: "Callable[[StageRecord], None] | None" = None,
         reconstruction: object = None,
@@ -323,7 +323,7 @@ class Pipeline:
             run_dir: the run folder (created).
             resume: skip the leading stages that finished with the same config.
             cache: in-memory inputs and artifacts handed to the stages (e.g. ``scene``).
-            device: torch device for the stages that compute.
+            device: torch device for the stages that compute (``auto``: CUDA when present, else the CPU).
             time_budget: seconds the whole run may take; stages read :meth:`StageContext.time_left`.
             on_stage: called after each stage with its record (for progress output).
             reconstruction: an in-memory ``pycolmap.Reconstruction`` to use as the input.

@@ -11,6 +11,7 @@ from pathlib import Path
 from nerfpipe.util.atomic import write_json  # noqa: F401 (write_json is part of this module's API)
 from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint
 from nerfpipe.util.configs import from_dict, to_dict  # noqa: F401 (to_dict is part of this module's API)
+from nerfpipe.util.devices import check_device
 from nerfpipe.util.errors import NerfpipeError
 
 CONFIG = "config.json"
@@ -66,8 +67,9 @@ def find_run(path: Path) -> "Path | None":
     return folder if (folder / CONFIG).is_file() else None
 
 
-def load_run(run_dir: Path, device: str = "cpu"):
-    """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode.
+def load_run(run_dir: Path, device: str = "auto"):
+    """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode, on ``device``
+    (``auto``: CUDA when present, else the CPU; :func:`~nerfpipe.util.devices.check_device`).
 
     ``run_dir`` is a folder of ``nerfpipe train`` or of ``nerfpipe run`` (its ``train/``: :func:`model_dir`),
     so every command that reads a run takes either. Run folders are passed around: a malformed ``config.json``, a checkpoint of another model or one
@@ -79,6 +81,7 @@ def load_run(run_dir: Path, device: str = "cpu"):
     from nerfpipe.models.registry import get_model
     from nerfpipe.training.trainer import scene_info
 
+    device = check_device(device)
     run_dir = model_dir(run_dir)
     cfg = read_config(run_dir)
     ckpt_path = find_checkpoint(run_dir)
