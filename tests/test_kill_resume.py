@@ -156,3 +156,23 @@ def test_a_folder_moved_aside_by_a_killed_replace_is_put_back(tmp_path):
     sweep_temporaries(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh", "render"]
     assert (tmp_path / "render" / "orbit.gif").read_text() == "the finished render"
+
+
+def test_what_is_written_reaches_the_disk_before_and_after_its_rename(tmp_path, monkeypatch):
+    """fsync of every file written (a file, and each file of a folder), then of the folder holding the renamed entry."""
+    import os
+
+    from nerfpipe.util import atomic
+
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real(fd)))
+    atomic.write_text(tmp_path / "a.json", "{}")
+    assert Path(synced[0]).name.startswith(".tmp-") and synced[0].endswith("-a.json")  # the data, in its temporary, first
+    assert synced[-1] == str(tmp_path)  # then the folder, after the rename
+    synced.clear()
+    with atomic.atomic_path(tmp_path / "render") as tmp:
+        (tmp / "sub").mkdir(parents=True)
+        (tmp / "sub" / "f.png").write_bytes(b"x")
+    assert any(s.endswith("/sub/f.png") for s in synced) and synced[-1] == str(tmp_path)
+    assert (tmp_path / "render" / "sub" / "f.png").read_bytes() == b"x"

@@ -9,6 +9,10 @@ A folder cannot replace a non-empty folder in one rename, so the old one is firs
 (``.tmp-old-*``) and then the new one moved in. A writer killed between the two renames leaves the
 target missing and its previous content aside: the sweep puts that back instead of removing it, so
 a kill -9 at any instant leaves the old or the new content in place, never neither.
+
+The content is flushed to the disk (``fsync`` of every file written, then of the folder that holds the
+renamed entry) before and after the rename, so a power cut, not only a killed process, leaves the old or
+the new content: a rename can otherwise reach the disk before the data it names.
 """
 
 import contextlib
@@ -86,13 +90,46 @@ def sweep_temporaries(run_dir: "str | Path") -> None:
 
 
 def _replace(tmp: Path, target: Path) -> None:
+    _flush(tmp)
     if tmp.is_dir() and target.exists():  # os.replace cannot overwrite a non-empty folder
         old = target.with_name(f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}-{target.name}")
         os.replace(target, old)
         os.replace(tmp, target)
+        _flush_folder(target.parent)
         _remove(old)
     else:
         os.replace(tmp, target)
+        _flush_folder(target.parent)
+
+
+def _flush(path: Path) -> None:
+    """``fsync`` a written file, or every file and folder of a written folder (symlinks not followed)."""
+    if path.is_symlink() or not path.exists():
+        return
+    if path.is_dir():
+        for root, _, files in os.walk(path):
+            for name in files:
+                if not os.path.islink(os.path.join(root, name)):
+                    _fsync(os.path.join(root, name), os.O_RDONLY)
+            _flush_folder(Path(root))
+    else:
+        _fsync(str(path), os.O_RDONLY)
+
+
+def _flush_folder(folder: Path) -> None:
+    """``fsync`` a folder, so that the entries renamed into it are on the disk (not possible everywhere)."""
+    if os.name != "nt":  # Windows cannot open a folder
+        _fsync(str(folder), os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+
+
+def _fsync(path: str, flags: int) -> None:
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    except OSError:  # some file systems refuse fsync on a folder; the data files were flushed
+        pass
+    finally:
+        os.close(fd)
 
 
 def _remove(p: Path) -> None:
