@@ -120,3 +120,21 @@ def test_cli_json_and_exit_codes(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(data_adapters, "load", load_flipped)
     assert main(["check", "--samples", "2", str(root)]) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+def test_the_command_hands_the_thread_count_back(tmp_path, capsys):
+    """Called from another pipeline's Python, ``check`` (which runs on at most 2 threads) leaves the
+    caller's thread count as it found it."""
+    import torch
+
+    from nerfpipe.commands.check import check
+
+    root = make_scene(tmp_path, "OPENCV", frames=4, points=20)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        assert check(str(root), json=True, samples=2) == 0
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+    capsys.readouterr()

@@ -25,10 +25,11 @@ def check(path: DatasetPath, json: bool = False, samples: int = 16, seed: int = 
     from nerfpipe.data.consistency import check_scene
 
     from nerfpipe.util.errors import refuse_unless
+    from nerfpipe.util.scoped import torch_threads
 
     refuse_unless([("samples", samples >= 0, "0 or more", samples)])
-    torch.set_num_threads(min(2, torch.get_num_threads()))
-    report = check_scene(data_adapters.load(path), samples=samples, seed=seed)
+    with torch_threads(min(2, torch.get_num_threads())):  # handed back after (a caller's own count stays)
+        report = check_scene(data_adapters.load(path), samples=samples, seed=seed)
     figures = report.as_dict()
     if json:
         print(_json.dumps(figures, indent=2))

@@ -59,14 +59,13 @@ def fit2d(
         max_pixels: larger images are downscaled (with a warning) to at most this many pixels.
         threads: torch CPU threads.
     """
-    import torch
-
     from nerfpipe.image_field import fit2d_run
     from nerfpipe.image_field.images import load_target
 
     from nerfpipe.outputs.plots import PLOT_DEPENDENCIES
     from nerfpipe.util.errors import refuse_unless, require_all
     from nerfpipe.util.paths import check_output_folder
+    from nerfpipe.util.scoped import torch_threads
 
     refuse_unless((
         ("iterations", iterations is None or iterations >= 1, "at least 1", iterations),
@@ -87,18 +86,18 @@ def fit2d(
     ))  # fmt: skip
     check_output_folder(out)
     require_all(PLOT_DEPENDENCIES)  # the figures are written after the fit
-    torch.set_num_threads(threads)
-    target = load_target(image, max_pixels)
-    for note in target.notes:
-        fit2d_run.console().print(f"[yellow]nerfpipe: warning:[/] {target.source}: {note}")
-    overrides = {k: v for k, v in locals().items() if k in fit2d_run.OVERRIDES and v is not None}
-    cfg = fit2d_run.configure(preset, overrides, target.pixels.shape)
-    if sweep:
-        if preset != "course":
-            raise NerfpipeError("--sweep varies L of the positional encoding: use it with --preset course")
-        fit2d_run.run_sweep(target, cfg, sweep_l, sweep_lr, out)
-    else:
-        fit2d_run.run_single(target, cfg, preset, out)
+    with torch_threads(threads):  # handed back after (a caller's own count stays)
+        target = load_target(image, max_pixels)
+        for note in target.notes:
+            fit2d_run.console().print(f"[yellow]nerfpipe: warning:[/] {target.source}: {note}")
+        overrides = {k: v for k, v in locals().items() if k in fit2d_run.OVERRIDES and v is not None}
+        cfg = fit2d_run.configure(preset, overrides, target.pixels.shape)
+        if sweep:
+            if preset != "course":
+                raise NerfpipeError("--sweep varies L of the positional encoding: use it with --preset course")
+            fit2d_run.run_sweep(target, cfg, sweep_l, sweep_lr, out)
+        else:
+            fit2d_run.run_single(target, cfg, preset, out)
     return 0
 
 

@@ -53,14 +53,13 @@ def mesh(
     """
     import json
 
-    import torch
-
     from nerfpipe.mesh.pipeline import MESH_DEPENDENCIES, MeshConfig, write_meshes
     from nerfpipe.mesh.trained import RenderedViews, mesh_model
     from nerfpipe.training.runs import load_run
     from nerfpipe.util.devices import check_device
     from nerfpipe.util.errors import NerfpipeError, refuse_unless, require_all
     from nerfpipe.util.paths import check_output_folder
+    from nerfpipe.util.scoped import torch_threads
 
     if level is not None and method != "mc":
         raise NerfpipeError("--level sets the marching-cubes iso-level: add --method mc")
@@ -70,11 +69,10 @@ def mesh(
     views = RenderedViews(tsdf_views, tsdf_size, chunk)
     out = check_output_folder(Path(out) if out is not None else Path(run_dir) / "mesh")
     require_all(MESH_DEPENDENCIES)
-    if threads is not None:
-        torch.set_num_threads(threads)
-    device = check_device(device)  # stdout is the JSON, which names it
-    scene, model, _ = load_run(Path(run_dir), device)
-    result = mesh_model(cfg, model, scene, views, device)
-    paths = write_meshes(result, out, scene.world_from_input)
-    print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()], "device": device}, indent=2))
+    with torch_threads(threads):  # handed back after (a caller's own count stays)
+        device = check_device(device)  # stdout is the JSON, which names it
+        scene, model, _ = load_run(Path(run_dir), device)
+        result = mesh_model(cfg, model, scene, views, device)
+        paths = write_meshes(result, out, scene.world_from_input)
+        print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()], "device": device}, indent=2))
     return 0

@@ -226,19 +226,18 @@ def plot(rows: "list[dict]", path: Path, title: str) -> None:
 
 def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
     """Benchmark every preset of ``cfg`` on the dataset at ``path``; returns the table rows."""
-    import torch
     from nerfpipe.data_adapters import load
 
     from nerfpipe.training import evaluation
     from nerfpipe.training.trainer import TrainerConfig
     from nerfpipe.util.errors import require_all
     from nerfpipe.util.paths import check_output_folder
+    from nerfpipe.util.scoped import torch_threads
 
     for name in cfg.presets:
         resolve_preset(name)  # every name is checked before anything trains
     check_output_folder(out)
     require_all(evaluation.dependencies(TrainerConfig(video_frames=0)))  # scores and the table's figure
-    torch.set_num_threads(cfg.threads)
     scene = load(path)
     out.mkdir(parents=True, exist_ok=True)
     rows: "list[dict]" = []
@@ -246,8 +245,9 @@ def run(path: Path, out: Path, cfg: BenchConfig) -> "list[dict]":
         rows.append(row)
         write_table(rows, out, Path(path).name, cfg)
 
-    for name in cfg.presets:
-        bench_preset(scene, name, cfg, out, on_row)
+    with torch_threads(cfg.threads):  # handed back after (a caller's own count stays)
+        for name in cfg.presets:
+            bench_preset(scene, name, cfg, out, on_row)
     return rows
 
 
