@@ -113,7 +113,6 @@ def test_photos_of_two_sizes_get_one_camera_per_size_and_keep_their_names(scene_
     assert {i: im.name for i, im in rec.images.items()} == names
 
 
-
 def test_failed_registrations_are_dropped_with_their_lone_points(scene_path):
     """colmap_mouse's model with one camera moved 1,000x away and one given a bogus focal length."""
     import pycolmap

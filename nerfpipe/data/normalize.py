@@ -69,11 +69,12 @@ def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
         horizontal = torch.where(sideways[:, None], axes_y, axes_x)
         values, vectors = torch.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
         least = vectors[:, 0] * (1.0 if float(vectors[:, 0] @ mean_up) >= 0 else -1.0)
-        if not (values[1] > 0.02 and values[0] < 0.25 * values[1]):
+        decided = bool(values[1] > 0.02 and values[0] < 0.25 * values[1])  # one clear least direction
+        if not decided:
             break
         sideways = (axes_y @ least).abs() < (axes_x @ least).abs()
     cos = float(least @ mean_up) / max(float(mean_up.norm()), 1e-12)
-    if values[1] > 0.02 and values[0] < 0.25 * values[1] and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
+    if decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
         return least
     plane = vectors[:, :2] @ vectors[:, :2].T @ mean_up
     return plane / plane.norm() if plane.norm() > 1e-6 else mean_up / mean_up.norm().clamp_min(1e-12)

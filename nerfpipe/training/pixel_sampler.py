@@ -16,6 +16,7 @@ from nerfpipe.data.rays import RayBundle, generate_rays
 from nerfpipe.data.scene import SceneData
 from nerfpipe.util.typing import Float, Tensor, UInt8
 
+
 def load_split_pixels(scene: SceneData, split: str) -> "tuple[Tensor, Tensor]":
     """All pixels of a split as uint8 ``[P, C]`` and the offsets ``[n+1]`` of each image."""
     chans = 4 if scene.has_alpha else 3
