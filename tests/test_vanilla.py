@@ -1,10 +1,12 @@
 """The classic NeRF field and model, the model registry, orbit cameras and the shared renderer."""
 
+import math
+
 import pytest
 import torch
 
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.data.orbit import look_at, orbit_cameras
+from nerfpipe.data.orbit import look_at, orbit_azimuths, orbit_cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.models.base import Model, ModelSpec, SceneInfo
@@ -89,6 +91,21 @@ def test_look_at_and_orbit_are_upright_and_centred():
     expected = float((ref.centers[0] - center).norm())  # same distance and elevation as the reference
     torch.testing.assert_close(dist, torch.full((12,), expected), atol=1e-3, rtol=0)
     torch.testing.assert_close(cams.centers[:, 2], torch.full((12,), 2.0), atol=1e-3, rtol=0)
+
+
+def test_the_orbit_sweeps_only_the_arc_the_cameras_cover():
+    full = torch.linspace(0, 2 * math.pi, 13)[:-1]  # all round: a full circle from the first camera on
+    torch.testing.assert_close(orbit_azimuths(full, 24), torch.arange(24, dtype=torch.float64) * (2 * math.pi / 24))
+    half = torch.linspace(-0.5, 2.0, 9)  # a 143-degree arc (a forward-facing capture): there and back within it
+    path = orbit_azimuths(half, 30)
+    span = torch.remainder(path - (2 * math.pi - 0.5), 2 * math.pi)
+    assert float(span.max()) == pytest.approx(2.5, abs=1e-9) and float(span.min()) == pytest.approx(0.0, abs=1e-12)
+    assert float(span[15]) == pytest.approx(2.5) and float(span[1]) == pytest.approx(float(span[-1]))  # turns at the far end, loops smoothly
+    ref = Cameras.create(look_at(torch.stack([4 * torch.cos(half), 4 * torch.sin(half), torch.ones(9)], -1), torch.zeros(9, 3), torch.tensor([0.0, 0.0, 1.0])),
+                         50.0, 50.0, 32.0, 24.0, 64, 48)  # fmt: skip
+    cams = orbit_cameras(ref, torch.zeros(3), 30)
+    az = torch.atan2(cams.centers[:, 1], cams.centers[:, 0])
+    assert float(az.min()) >= -0.5 - 1e-4 and float(az.max()) <= 2.0 + 1e-4  # never behind, where no photograph looked
 
 
 def test_render_cameras_is_chunk_invariant():

@@ -31,13 +31,35 @@ def look_at(eye: Float[Tensor, "*bs 3"], target: Float[Tensor, "*bs 3"], up: Flo
     return m
 
 
+ARC_GAP = math.pi / 2
+"""An azimuth gap between the reference cameras wider than this (seen from the centre) means they were not
+taken all round: the path sweeps the arc they cover, back and forth, instead of showing the unseen side."""
+
+
+def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap: float = ARC_GAP) -> Float[Tensor, "num_frames"]:
+    """Azimuths of the path's frames: a full circle when the cameras' ``azimuths`` (radians) leave no gap wider
+    than ``gap``, else an arc over the covered span, there and back (eased at its ends, so the loop is smooth)."""
+    frames = torch.arange(num_frames, dtype=torch.float64)
+    a = torch.sort(torch.remainder(azimuths.double().reshape(-1), 2 * math.pi)).values
+    if len(a) < 2:
+        return frames * (2 * math.pi / num_frames)
+    gaps = torch.diff(torch.cat([a, a[:1] + 2 * math.pi]))
+    widest = int(gaps.argmax())
+    if float(gaps[widest]) <= gap:
+        return a[0] + frames * (2 * math.pi / num_frames)
+    start = a[(widest + 1) % len(a)]
+    span = 2 * math.pi - float(gaps[widest])
+    return start + span * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))
+
+
 def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
-    """A full circle of cameras around ``center`` (about +z) at the reference cameras' mean
-    distance and elevation, with the intrinsics of the first reference camera."""
+    """Cameras around ``center`` (about +z) at the reference cameras' mean distance and elevation, with the
+    intrinsics of the first reference camera: a full circle, or the arc the reference cameras cover
+    (:func:`orbit_azimuths`)."""
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())
     elevation = float(torch.asin((offsets[:, 2] / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
-    angles = torch.arange(num_frames, dtype=torch.float64) * (2 * math.pi / num_frames)
+    angles = orbit_azimuths(torch.atan2(offsets[:, 1], offsets[:, 0]), num_frames)
     ring = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=-1) * math.cos(elevation)
     eye = center.double() + radius * (ring + torch.tensor([0.0, 0.0, math.sin(elevation)], dtype=torch.float64))
     m = look_at(eye, center.double().expand_as(eye), torch.tensor(WORLD_UP, dtype=torch.float64))

@@ -176,6 +176,35 @@ def _points(rec, images) -> "Points3D | None":
     )
 
 
+POINTS_MODEL = "points_model"
+"""``SceneData.meta`` key: the COLMAP model whose points :func:`with_points` added (a run records it to reload the same scene)."""
+
+
+def with_points(scene: SceneData, model_dir: Path) -> SceneData:
+    """``scene`` with the sparse points of the COLMAP model in ``model_dir`` (in ``scene``'s input frame, one
+    image per camera named ``NNNNN.jpg`` by camera index, its cameras possibly downscaled: the track pixels
+    are scaled to the scene's images), and the near/far bounds and box that the points give
+    (:func:`~nerfpipe.data.normalize.bounds_from_points`), as a COLMAP capture gets them."""
+    import dataclasses
+
+    rec = _open(Path(model_dir))
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    index = [int(Path(im.name).stem) if Path(im.name).stem.isdigit() else -1 for im in images]
+    if index != list(range(len(scene.cameras))):
+        raise NerfpipeError(f"the points' model has {len(images)} images, not one per camera of the scene ({len(scene.cameras)})", model_dir)
+    points = _points(rec, images)
+    if points is None:
+        return scene
+    cams = scene.cameras
+    size = torch.tensor([[rec.camera(im.camera_id).width, rec.camera(im.camera_id).height] for im in images], dtype=torch.float64)
+    scale = torch.stack([cams.width.double(), cams.height.double()], -1).reshape(-1, 2) / size
+    points.track_xy = points.track_xy * scale[points.track_camera]
+    points.xyz = scene.world_from_input.apply_points(points.xyz).float()
+    near, far, aabb = bounds_from_points(cams, points.xyz)
+    meta = scene.meta | {POINTS_MODEL: str(Path(model_dir).resolve())}
+    return dataclasses.replace(scene, points=points, near=near, far=far, aabb=aabb, meta=meta)
+
+
 def _cameras(rec, images, cameras_file: Path, images_file: Path) -> "tuple[Cameras, list[str]]":
     """Cameras in the input frame (float64) and the COLMAP model name per camera."""
     rows, models, w2c = [], [], []

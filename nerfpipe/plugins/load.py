@@ -7,7 +7,8 @@ Where the scene comes from, first match wins:
    ``RUN_DIR/input`` (``sparse/0`` + ``images/``, linked or written) and read by the COLMAP adapter,
    so a resumed run or ``nerfpipe stage`` finds the same scene without the caller;
 2. the ``sfm`` stage's COLMAP folder ``RUN_DIR/sfm``;
-3. the input path, through :func:`data_adapters.load`.
+3. the input path, through :func:`data_adapters.load`, with the points that the ``sfm`` stage triangulated
+   for it when there are some (``RUN_DIR/sfm/points``).
 
 Artifacts: ``scene.json`` (summary, and where to reload the scene from) on disk; ``scene`` in memory.
 """
@@ -28,6 +29,7 @@ from nerfpipe.util.paths import resolve_inside
 SCENE_JSON = "scene.json"
 INPUT_DIR = "input"
 SFM_DIR = "sfm"
+POINTS_DIR = "sfm/points"
 
 
 @dataclass
@@ -90,7 +92,7 @@ def input_path(ctx: StageContext) -> "tuple[Path, str | None]":
         if "images" not in ctx.cache:
             raise NerfpipeError("an in-memory reconstruction needs its images (a folder or a dict of arrays)")
         return write_reconstruction(ctx.cache["reconstruction"], ctx.cache["images"], ctx.path(INPUT_DIR)), "colmap"
-    if ctx.path(SFM_DIR).is_dir():
+    if ctx.path(SFM_DIR).is_dir() and not ctx.path(POINTS_DIR).is_dir():
         return ctx.path(SFM_DIR), "colmap"
     if ctx.source is None:
         raise NerfpipeError("no input: give a dataset path, or a reconstruction and its images", ctx.run_dir)
@@ -102,7 +104,7 @@ def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
 
     path, fmt = input_path(ctx)
     fmt = config.format or fmt
-    scene = data_adapters.load(path, fmt)
+    scene = _with_triangulated_points(data_adapters.load(path, fmt), ctx)
     check_images(scene)  # adapters read headers only: a truncated image stops the run here, before any work
     write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt))
     ctx.log.info("loaded %d cameras (%s) from %s", len(scene.cameras), scene.format, path)
@@ -122,7 +124,16 @@ def restore(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
         raise NerfpipeError(f"not a scene record of the load stage ({type(exc).__name__}: {exc})", file) from exc
     if ctx.source is None or path != Path(ctx.source).resolve():  # else the scene was read in the run folder
         path = resolve_inside(ctx.run_dir, path, file)
-    return {"scene": data_adapters.load(path, fmt)}
+    return {"scene": _with_triangulated_points(data_adapters.load(path, fmt), ctx)}
+
+
+def _with_triangulated_points(scene: SceneData, ctx: StageContext) -> SceneData:
+    """The scene with the ``sfm`` stage's triangulated points, when it made some for this input."""
+    if not ctx.path(POINTS_DIR).is_dir() or scene.points is not None:
+        return scene
+    from nerfpipe.data_adapters.colmap import with_points
+
+    return with_points(scene, ctx.path(POINTS_DIR))
 
 
 STAGE = StageSpec(

@@ -92,9 +92,17 @@ def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
         write_meshes(result, tmp, scene.world_from_input)
         if figures is not None:
             (tmp / METRICS_FILE).write_text(json.dumps(figures, indent=2) + "\n")
-    ctx.log.info("mesh: %d faces%s", result.full.num_faces, "" if figures is None else
-                 f", F-score {figures.get('fscore', float('nan')):.3f} against {figures['reference']}")
+    ctx.log.info("mesh: %d faces%s", result.full.num_faces, "" if figures is None else ", " + _headline(figures))
     return {MESH_PLY: ctx.path(MESH_PLY), MESH_JSON: ctx.path(MESH_JSON)}
+
+
+def _headline(figures: dict) -> str:
+    """The reference figures in a few words: the F-score against a mesh; against sparse points, the share near the
+    mesh and the sight lines the mesh blocks."""
+    if "fscore" in figures:
+        return f"F-score {figures['fscore']:.3f} against {figures['reference']}"
+    line = f"{figures['points_within_threshold']:.1%} of {figures['reference']} within {figures['points_threshold']:.3g}"
+    return line + (f", free-space violation {figures['free_space_violation']:.3f}" if "free_space_violation" in figures else "")
 
 
 STAGE = StageSpec(

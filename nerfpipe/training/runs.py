@@ -1,8 +1,10 @@
 """The run folder: ``config.json`` (enough to rebuild scene and model), ``checkpoint.safetensors``
 (:mod:`nerfpipe.training.checkpoint`), outputs.
 
-``config.json`` holds ``{"data": path, "model": name, "model_config": {...}, "trainer": {...}}``;
-:func:`load_run` rebuilds the scene (through ``data_adapters.load``) and the trained model.
+``config.json`` holds ``{"data": path, "model": name, "model_config": {...}, "trainer": {...}}``, and ``"points"``:
+a COLMAP model of sparse points triangulated for the data (the ``sfm`` stage's, for posed photographs without
+points) when the scene had them; :func:`load_run` rebuilds the scene (through ``data_adapters.load``, with those
+points) and the trained model.
 """
 
 import json
@@ -97,6 +99,10 @@ def load_run(run_dir: Path, device: str = "auto"):
     except NerfpipeError as exc:
         raise NerfpipeError(exc.problem, config_file) from exc
     scene = load(Path(cfg["data"]))
+    if isinstance(cfg.get("points"), str):  # the points the run trained with, which the data itself lacks
+        from nerfpipe.data_adapters.colmap import with_points
+
+        scene = with_points(scene, Path(cfg["points"]))
     model = model_cfg.setup(scene_info(scene)).to(device)
     load_model_state(model, state, ckpt_path, cfg["model"])
     return scene, model.eval(), cfg

@@ -264,9 +264,12 @@ class Trainer:
             save_checkpoint(self.out / CHECKPOINT, self.state() if ranks is None else {**self.state(), "ranks": ranks})
 
     def write_config(self) -> None:
+        from nerfpipe.data_adapters.colmap import POINTS_MODEL
+
+        extra = {"points": self.scene.meta[POINTS_MODEL]} if POINTS_MODEL in self.scene.meta else {}
         write_json(
             self.out / CONFIG,
-            {"data": str(Path(self.scene.source).resolve()), "model": self.model_name, "model_config": to_dict(self.model_config), "trainer": to_dict(self.cfg)},
+            {"data": str(Path(self.scene.source).resolve()), **extra, "model": self.model_name, "model_config": to_dict(self.model_config), "trainer": to_dict(self.cfg)},
         )
 
     # ------------------------------------------------------------------ loop
