@@ -30,6 +30,18 @@ def test_orbit_cameras_see_the_whole_mesh():
         assert (z > 0).all() and (uv >= 0).all() and (uv <= 64).all()
 
 
+def test_the_views_keep_to_the_arc_the_photographs_were_taken_from():
+    mesh = coloured_box()
+    arc = np.radians(np.linspace(-60, 60, 7))  # a wall-mounted object: photographed from its front only
+    seen_from = np.stack([3 * np.cos(arc), 3 * np.sin(arc), np.ones(7)], -1)
+    cams = orbit_cameras(mesh, size=64, seen_from=seen_from)
+    az = np.degrees(np.arctan2(cams.centers[:, 1].numpy(), cams.centers[:, 0].numpy()))
+    np.testing.assert_allclose(az, [-45, -15, 15, 45], atol=1e-6)  # spread over the 120-degree arc, none behind
+    around = np.radians(np.linspace(0, 360, 9)[:-1])  # photographed all round: the usual four sides
+    ring = np.stack([3 * np.cos(around), 3 * np.sin(around), np.ones(8)], -1)
+    np.testing.assert_allclose(orbit_cameras(mesh, size=64, seen_from=ring).world_from_cam, orbit_cameras(mesh, size=64).world_from_cam)
+
+
 def _project(cams, i, pts):
     cam_from_world = np.linalg.inv(cams.world_from_cam[i].numpy())
     p = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]

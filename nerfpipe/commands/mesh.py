@@ -73,6 +73,6 @@ def mesh(
         device = check_device(device)  # stdout is the JSON, which names it
         scene, model, _ = load_run(Path(run_dir), device)
         result = mesh_model(cfg, model, scene, views, device)
-        paths = write_meshes(result, out, scene.world_from_input)
+        paths = write_meshes(result, out, scene.world_from_input, seen_from=scene.split_cameras("train").centers.reshape(-1, 3).double().numpy())
         print(json.dumps({**result.figures, "files": [str(p) for p in paths.values()], "device": device}, indent=2))
     return 0

@@ -36,19 +36,27 @@ ARC_GAP = math.pi / 2
 taken all round: the path sweeps the arc they cover, back and forth, instead of showing the unseen side."""
 
 
-def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap: float = ARC_GAP) -> Float[Tensor, "num_frames"]:
-    """Azimuths of the path's frames: a full circle when the cameras' ``azimuths`` (radians) leave no gap wider
-    than ``gap``, else an arc over the covered span, there and back (eased at its ends, so the loop is smooth)."""
-    frames = torch.arange(num_frames, dtype=torch.float64)
+def covered_arc(azimuths: Float[Tensor, "num_cameras"], gap: float = ARC_GAP) -> "tuple[float, float]":
+    """``(start, span)`` in radians of the arc the cameras' ``azimuths`` cover, counter-clockwise from ``start``:
+    the full circle (``span`` 2 pi, from the first camera) unless they leave a gap wider than ``gap``."""
     a = torch.sort(torch.remainder(azimuths.double().reshape(-1), 2 * math.pi)).values
     if len(a) < 2:
-        return frames * (2 * math.pi / num_frames)
+        return (float(a[0]) if len(a) else 0.0), 2 * math.pi
     gaps = torch.diff(torch.cat([a, a[:1] + 2 * math.pi]))
     widest = int(gaps.argmax())
     if float(gaps[widest]) <= gap:
-        return a[0] + frames * (2 * math.pi / num_frames)
-    start = a[(widest + 1) % len(a)]
-    span = 2 * math.pi - float(gaps[widest])
+        return float(a[0]), 2 * math.pi
+    return float(a[(widest + 1) % len(a)]), 2 * math.pi - float(gaps[widest])
+
+
+def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap: float = ARC_GAP) -> Float[Tensor, "num_frames"]:
+    """Azimuths of the path's frames: a full circle when the cameras' ``azimuths`` (radians) leave no gap wider
+    than ``gap``, else the arc they cover (:func:`covered_arc`), there and back (eased at its ends, so the loop
+    is smooth)."""
+    frames = torch.arange(num_frames, dtype=torch.float64)
+    start, span = covered_arc(azimuths, gap)
+    if span >= 2 * math.pi:
+        return start + frames * (2 * math.pi / num_frames)
     return start + span * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))
 
 

@@ -356,15 +356,18 @@ def build_meshes(
     return MeshOutputs(mesh, small, figures)
 
 
-def write_meshes(out: MeshOutputs, out_dir: "str | Path", world_from_input: Similarity, views: bool = True) -> "dict[str, Path]":
-    """Write the meshes in the input frame (and the picture of the world-frame mesh, +z up)."""
+def write_meshes(
+    out: MeshOutputs, out_dir: "str | Path", world_from_input: Similarity, views: bool = True, seen_from: "np.ndarray | None" = None
+) -> "dict[str, Path]":
+    """Write the meshes in the input frame (and the picture of the world-frame mesh, +z up, seen from the arc of
+    the photographs' centres ``seen_from`` when they do not surround it: :func:`~nerfpipe.mesh.views.orbit_cameras`)."""
     out_dir = Path(out_dir)
     paths = {name: out_dir / name for name in FILES}
     full, small = to_input_frame(out.full, world_from_input), to_input_frame(out.simplified, world_from_input)
     write_ply(full, paths["mesh.ply"])
     write_ply(small, paths["mesh_simplified.ply"])
     if views:
-        write_views(out.full, paths["mesh_views.png"])
+        write_views(out.full, paths["mesh_views.png"], seen_from=seen_from)
     else:
         paths.pop("mesh_views.png")
     record = {**out.figures, "frame": "input", "world_from_input": {"rotation": world_from_input.rotation.tolist(),

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.orbit import covered_arc
 from nerfpipe.data.rays import camera_rays
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.util.atomic import write_bytes
@@ -35,8 +36,13 @@ def look_at(eye: Float[np.ndarray, "3"], target: Float[np.ndarray, "3"], up: Flo
     return m
 
 
-def orbit_cameras(mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360, count: int = 4, elevation_deg: float = 25.0, fov_deg: float = 40.0) -> Cameras:
-    """``count`` cameras around the mesh's bounding box, framing it whole."""
+def orbit_cameras(
+    mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360, count: int = 4, elevation_deg: float = 25.0, fov_deg: float = 40.0,
+    seen_from: "np.ndarray | None" = None,
+) -> Cameras:
+    """``count`` cameras around the mesh's bounding box, framing it whole: all round, or spread over the arc
+    that the photographs' centres ``seen_from`` (``[N, 3]``) cover when they leave a wide gap
+    (:func:`nerfpipe.data.orbit.covered_arc`: a facade or a wall-mounted object is not shown from behind)."""
     lo, hi = mesh.bounds()
     centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
@@ -44,9 +50,15 @@ def orbit_cameras(mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360, count
     side /= np.linalg.norm(side)
     dist = 1.05 * radius / math.sin(math.radians(fov_deg) / 2)
     el = math.radians(elevation_deg)
+    start, span = 2 * math.pi * 0.125 / count, 2 * math.pi
+    if seen_from is not None and len(seen_from):
+        rel = np.asarray(seen_from, dtype=np.float64).reshape(-1, 3) - centre
+        arc_start, arc_span = covered_arc(torch.from_numpy(np.arctan2(rel @ np.cross(up, side), rel @ side)))
+        if arc_span < 2 * math.pi:
+            start, span = arc_start + arc_span / (2 * count), arc_span
     mats = []
     for k in range(count):
-        az = 2 * math.pi * (k + 0.125) / count
+        az = start + span * k / count
         horiz = math.cos(az) * side + math.sin(az) * np.cross(up, side)
         mats.append(look_at(centre + dist * (math.cos(el) * horiz + math.sin(el) * up), centre, up))
     f = 0.5 * size / math.tan(math.radians(fov_deg) / 2)
@@ -73,12 +85,12 @@ def _shade(mesh: TriangleMesh, hit: dict, dirs: np.ndarray, light: np.ndarray):
     return np.where(ok[..., None], grey, bg), np.where(ok[..., None], col, bg)
 
 
-def render_views(mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360) -> Float[np.ndarray, "H W 3"]:
-    """A ``2 x 4`` grid (shaded row, coloured row) as float RGB in [0, 1]."""
+def render_views(mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360, seen_from: "np.ndarray | None" = None) -> Float[np.ndarray, "H W 3"]:
+    """A ``2 x 4`` grid (shaded row, coloured row) as float RGB in [0, 1], from :func:`orbit_cameras`."""
     o3d = require("open3d", "mesh")
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh.to_open3d_tensor())
-    cams = orbit_cameras(mesh, up, size)
+    cams = orbit_cameras(mesh, up, size, seen_from=seen_from)
     rows = [[], []]
     for i in range(len(cams)):
         rays = camera_rays(cams, i)
@@ -92,10 +104,10 @@ def render_views(mesh: TriangleMesh, up=(0.0, 0.0, 1.0), size: int = 360) -> Flo
     return np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
 
 
-def write_views(mesh: TriangleMesh, path: "str | Path", up=(0.0, 0.0, 1.0), size: int = 360) -> Path:
+def write_views(mesh: TriangleMesh, path: "str | Path", up=(0.0, 0.0, 1.0), size: int = 360, seen_from: "np.ndarray | None" = None) -> Path:
     """Render :func:`render_views` and write it as PNG atomically."""
     import imageio.v3 as iio
 
-    img = (np.clip(render_views(mesh, up, size), 0, 1) * 255 + 0.5).astype(np.uint8)
+    img = (np.clip(render_views(mesh, up, size, seen_from), 0, 1) * 255 + 0.5).astype(np.uint8)
     write_bytes(path, iio.imwrite("<bytes>", img, extension=".png"))
     return Path(path)

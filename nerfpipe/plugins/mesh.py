@@ -89,7 +89,7 @@ def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
     full = to_input_frame(result.full, scene.world_from_input)
     figures = evaluate(config, ctx, scene, full, result.figures["box_world"]) if config.evaluate else None
     with atomic_path(ctx.path(MESH_DIR)) as tmp:
-        write_meshes(result, tmp, scene.world_from_input)
+        write_meshes(result, tmp, scene.world_from_input, seen_from=scene.split_cameras("train").centers.reshape(-1, 3).double().numpy())
         if figures is not None:
             (tmp / METRICS_FILE).write_text(json.dumps(figures, indent=2) + "\n")
     ctx.log.info("mesh: %d faces%s", result.full.num_faces, "" if figures is None else ", " + _headline(figures))
