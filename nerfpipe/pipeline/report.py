@@ -126,6 +126,11 @@ class Page:
             return False
         return True
 
+    def optional_json(self, role: str) -> "dict | None":
+        """The JSON object of ``role``'s file, None when absent (a stage that runs for some inputs only)."""
+        path = self.find(self.item(role).candidates())
+        return None if path is None else self.json(role)
+
     def json(self, role: str) -> "dict | None":
         """The JSON object of ``role``'s file; None (recorded as missing) when absent or unreadable."""
         item = self.item(role)
@@ -272,8 +277,13 @@ CHECK_KEYS = ["num_cameras", "num_probes", "kornia_max_px", "kornia_unproject_ma
               "reproj_mean_px", "reproj_median_px", "colmap_reported_mean_px", "points_in_front_fraction"]  # fmt: skip
 
 
-def scene_section(scene: "dict | None", check: "dict | None") -> str:
+SFM_KEYS = ["mode", "num_photos", "num_registered", "unregistered", "dropped", "num_points3D", "mean_reprojection_error_px"]
+
+
+def scene_section(scene: "dict | None", check: "dict | None", sfm: "dict | None" = None) -> str:
     left = kv_table(_scene_rows(scene), SCENE_KEYS) if scene is not None else not_produced("scene summary (scene.json)")
+    if sfm is not None:
+        left += "<h3>Structure from motion</h3>" + kv_table({k: v for k, v in sfm.items() if k in SFM_KEYS}, SFM_KEYS)
     if check is None:
         right = not_produced("convention check (check.json)")
     else:
@@ -463,6 +473,7 @@ def build_html(page: Page) -> str:
     run = read_json(page.run_dir / "run.json") or {}
     scene = page.json("scene")
     check = page.json("check")
+    sfm = page.optional_json("sfm")
     metrics = page.json("metrics")
     mesh = page.json("mesh")
     evaluation = mesh_evaluation(page, mesh)
@@ -471,7 +482,7 @@ def build_html(page: Page) -> str:
     chain = [str(s) for s in run.get("chain", [])] if isinstance(run.get("chain"), list) else []
     body = [
         guarded(page, "figures", "key figures", lambda: key_figures(metrics, check, {**(mesh or {}), **(evaluation or {})})),
-        guarded(page, "scene", "scene", lambda: scene_section(scene, check)),
+        guarded(page, "scene", "scene", lambda: scene_section(scene, check, sfm)),
         guarded(page, "training", "training", lambda: training_section(page, metrics)),
         guarded(page, "views", "novel views", lambda: views_section(page)),
         guarded(page, "bench", "speed against error", lambda: bench_section(page)),

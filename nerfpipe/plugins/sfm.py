@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Literal
 
 from nerfpipe.data.image_file import image_header, open_image
+from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
 from nerfpipe.util.errors import NerfpipeError, require
 from nerfpipe.util.paths import resolve_inside
@@ -388,4 +389,5 @@ STAGE = StageSpec(
     provides=("sfm_summary", "sfm_reconstruction"),
     applies=applies,
     restore=restore,
+    shows=(Shown("sfm", "table", (f"{SFM_DIR}/sfm.json",), "structure from motion summary"),),
 )
