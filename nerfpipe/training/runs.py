@@ -8,6 +8,7 @@ points) and the trained model.
 """
 
 import json
+import warnings
 from pathlib import Path
 
 from nerfpipe.util.atomic import write_json  # noqa: F401 (write_json is part of this module's API)
@@ -17,6 +18,10 @@ from nerfpipe.util.devices import check_device
 from nerfpipe.util.errors import NerfpipeError
 
 CONFIG = "config.json"
+
+
+class RetiredOptionWarning(UserWarning):
+    """A run's ``config.json`` names model options that this version of nerfpipe no longer has."""
 
 
 CONFIG_KEYS = {"data": str, "model": str, "model_config": dict, "trainer": dict}
@@ -93,11 +98,14 @@ def load_run(run_dir: Path, device: str = "auto"):
     config_file = Path(run_dir) / CONFIG
     try:
         spec = get_model(cfg["model"])
-        model_cfg = from_dict(spec.config, cfg["model_config"])
+        retired: "list[str]" = []
+        model_cfg = from_dict(spec.config, cfg["model_config"], dropped=retired)
     except (TypeError, ValueError) as exc:
         raise NerfpipeError(f"model_config does not fit the '{cfg['model']}' model ({exc})", config_file) from exc
     except NerfpipeError as exc:
         raise NerfpipeError(exc.problem, config_file) from exc
+    if retired:  # written by an earlier nerfpipe: the checkpoint's tensors still have to fit (load_model_state)
+        warnings.warn(f"{config_file}: options this nerfpipe no longer has are ignored: {', '.join(retired)}", RetiredOptionWarning, stacklevel=2)
     scene = load(Path(cfg["data"]))
     if isinstance(cfg.get("points"), str):  # the points the run trained with, which the data itself lacks
         from nerfpipe.data_adapters.colmap import with_points

@@ -50,7 +50,9 @@ def to_dict(config: object) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=_json_default))
 
 
-def from_dict(default: object, values: dict, what: "str | None" = None, where: "str | Path | None" = None) -> object:
+def from_dict(
+    default: object, values: dict, what: "str | None" = None, where: "str | Path | None" = None, dropped: "list[str] | None" = None
+) -> object:
     """``default`` (a config dataclass instance, or its class for the class's defaults) with ``values`` applied.
 
     Args:
@@ -58,9 +60,11 @@ def from_dict(default: object, values: dict, what: "str | None" = None, where: "
         values: option name -> value, as :func:`to_dict` writes them; nested configs take nested tables.
         what: how errors name the config (default: its class name).
         where: the file the values came from, named in errors.
+        dropped: for values an earlier nerfpipe wrote (a run's ``config.json``): unknown options (one this version
+            no longer has) are left out and their dotted names appended here, instead of refused.
 
     Raises:
-        NerfpipeError: an unknown option, or a value the config refuses.
+        NerfpipeError: an unknown option (unless ``dropped`` is given), or a value the config refuses.
     """
     if isinstance(default, type):
         default = default()
@@ -70,9 +74,15 @@ def from_dict(default: object, values: dict, what: "str | None" = None, where: "
     hints = typing.get_type_hints(type(default))
     names = [f.name for f in dataclasses.fields(default)]
     unknown = sorted(set(values) - set(names))
-    if unknown:
+    if unknown and dropped is None:
         raise NerfpipeError(f"{what} has no option {unknown[0]!r} (options: {', '.join(names)})", where)
-    values = {key: _value(getattr(default, key), hints[key], value, f"{what} option '{key}'", where) for key, value in values.items()}
+    if unknown:
+        dropped.extend(unknown)
+    inner = {key: [] for key in values if key in names}
+    values = {key: _value(getattr(default, key), hints[key], value, f"{what} option '{key}'", where, None if dropped is None else inner[key])
+              for key, value in values.items() if key in names}  # fmt: skip
+    if dropped is not None:
+        dropped.extend(f"{key}.{name}" for key, names_ in inner.items() for name in names_)
     try:
         return dataclasses.replace(default, **values)
     except (TypeError, ValueError) as exc:  # a value of the wrong type or range meets the config's own checks
@@ -83,14 +93,15 @@ def from_dict(default: object, values: dict, what: "str | None" = None, where: "
         raise NerfpipeError(exc.problem, where) from exc
 
 
-def _value(current: object, hint: object, value: object, what: str, where: "str | Path | None") -> object:
-    """One option's value from its JSON/TOML form, by the field's current value and type hint."""
+def _value(current: object, hint: object, value: object, what: str, where: "str | Path | None", dropped: "list[str] | None" = None) -> object:
+    """One option's value from its JSON/TOML form, by the field's current value and type hint (``dropped``: as
+    :func:`from_dict`'s, for a nested config)."""
     if hint in _SCALARS and not _SCALARS[hint](value):
         raise NerfpipeError(f"{what} must be {hint.__name__}, not {type(value).__name__} ({value!r})", where)
     if isinstance(value, dict) and dataclasses.is_dataclass(current):
-        return from_dict(current, value, what, where)
+        return from_dict(current, value, what, where, dropped)
     if isinstance(value, dict) and isinstance(hint, type) and dataclasses.is_dataclass(hint):
-        return from_dict(hint, value, what, where)
+        return from_dict(hint, value, what, where, dropped)
     if isinstance(value, list) and (isinstance(current, tuple) or _accepts(hint, tuple)):
         return tuple(value)  # JSON and TOML have no tuples
     if isinstance(value, str) and (isinstance(current, Path) or (_accepts(hint, Path) and not _accepts(hint, str))):
