@@ -25,7 +25,7 @@ def _commands() -> dict:
     return {
         "info": info.info,
         "train": _train,
-        "render": __import__("nerfpipe.commands.render", fromlist=["render"]).render,
+        "render": _render,
         "eval": __import__("nerfpipe.commands.eval", fromlist=["eval_run"]).eval_run,
         "fit2d": __import__("nerfpipe.commands.fit2d", fromlist=["fit2d"]).fit2d,
         "check": check.check,
@@ -36,7 +36,7 @@ def _commands() -> dict:
         "stage": run.stage,
         "stages": run.list_stages,
         "eval-mesh": __import__("nerfpipe.commands.eval_mesh", fromlist=["eval_mesh"]).eval_mesh,
-        "mesh": __import__("nerfpipe.commands.mesh", fromlist=["mesh"]).mesh,
+        "mesh": _mesh,
         "bench": __import__("nerfpipe.commands.bench", fromlist=["bench"]).bench,
         "view": __import__("nerfpipe.commands.view", fromlist=["view"]).view,
     }
@@ -47,10 +47,22 @@ def _train() -> int:
     return 2  # never called: ``nerfpipe train ...`` is parsed by nerfpipe.commands.train.main, from the configs
 
 
+def _render() -> int:
+    """Render a camera path of a trained run into RUN/render/ (every RenderConfig field as an option)."""
+    return 2  # never called: nerfpipe.commands.render.main parses it, from the config
+
+
+def _mesh() -> int:
+    """Extract a mesh from a trained run into RUN/mesh/ (every MeshConfig field as an option, RenderedViews' as --views.*)."""
+    return 2  # never called: nerfpipe.commands.mesh.main parses it, from the configs
+
+
 GENERATED = {"train": ("nerfpipe.commands.train", "main"), "stage": ("nerfpipe.commands.run", "stage_main"),
-             "run": ("nerfpipe.commands.run", "run_main")}
-"""Subcommands whose options depend on one of their own arguments (``--model``, the stage): they parse their command line
-themselves, from the config dataclasses (listed in ``nerfpipe --help`` through the entries above)."""
+             "run": ("nerfpipe.commands.run", "run_main"), "render": ("nerfpipe.commands.render", "main"),
+             "mesh": ("nerfpipe.commands.mesh", "main")}
+"""Subcommands that parse their command line themselves, from the config dataclasses (listed in ``nerfpipe --help``
+through the entries above): their options depend on one of their own arguments (``--model``, the stage), or are a
+config's fields (render, mesh), whose module imports the config and so torch, which ``nerfpipe --help`` does not need."""
 
 
 def _dispatch(argv: "list[str]"):

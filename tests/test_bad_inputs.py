@@ -592,7 +592,7 @@ CASES: "dict[str, Case]" = {
     "mesh/not-a-run-folder": run_case(_not_a_run, command="mesh", output="mesh"),
     "mesh/checkpoint-of-another-model": run_case(_checkpoint_of_another_model, command="mesh", output="mesh"),
     "mesh/resolution-zero": run_case(lambda r, t: "--resolution", command="mesh", flags=("--resolution", "0"), output="mesh"),
-    "mesh/tsdf-views-zero": run_case(lambda r, t: "--tsdf-views", command="mesh", flags=("--tsdf-views", "0"), output="mesh"),
+    "mesh/tsdf-views-zero": run_case(lambda r, t: "--tsdf-views", command="mesh", flags=("--views.tsdf-views", "0"), output="mesh"),
     "mesh/level-without-mc": run_case(lambda r, t: "--level", command="mesh", flags=("--level", "5"), output="mesh"),
     "mesh/out-under-a-file": Case(lambda b, t: (lambda run, out: (["mesh", str(run), "--out", str(out)], str(out), out))(_copy(b, "run", t), _file_out(t))),
     "stage/not-a-run-folder": stage_case(_keep),

@@ -62,7 +62,7 @@ def fake_run(tmp_path, monkeypatch):
 def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, capsys):
     import trimesh
 
-    assert main(["mesh", str(fake_run), "--method", method, "--resolution", "64", "--faces", "1500", "--tsdf-size", "48", *(["--level", "200"] if method == "mc" else [])]) == 0
+    assert main(["mesh", str(fake_run), "--method", method, "--resolution", "64", "--faces", "1500", "--views.tsdf-size", "48", *(["--level", "200"] if method == "mc" else [])]) == 0
     figures = json.loads(capsys.readouterr().out)
     out = fake_run / "mesh"
     assert sorted(p.name for p in out.iterdir()) == ["mesh.json", "mesh.ply", "mesh_simplified.ply", "mesh_views.png"]
