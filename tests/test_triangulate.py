@@ -75,6 +75,16 @@ def test_a_trained_run_reloads_with_the_triangulated_points(fox_subset, tmp_path
     assert model.behind is not None
 
 
+def test_nerfpipe_train_says_that_nerfpipe_run_would_triangulate_the_points(fox_subset, tmp_path, capsys):
+    from nerfpipe.cli import main
+
+    argv = ["train", str(fox_subset), "--iters", "1", "--rays-per-step", "64", "--video-frames", "0", "--eval-every", "0",
+            "--final-eval-views", "1", "--eval-max-size", "32", "--no-write-outputs", "--out", str(tmp_path / "run")]  # fmt: skip
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "no sparse points" in err and "`nerfpipe run` triangulates" in err
+
+
 def test_renders_on_a_flat_background_and_scenes_with_points_get_none(scene_path):
     assert not wants_points(data_adapters.load(scene_path("colmap_mouse")))  # it has points
     assert not wants_points(data_adapters.load(scene_path("blender_lego")))  # alpha: a render

@@ -97,6 +97,12 @@ def train(cmd: TrainCommand) -> int:
     out = check_output_folder(Path(cmd.out) if cmd.out is not None else Path("runs") / f"{Path(cmd.path).stem}-{cmd.model}")
     require_all(evaluation.dependencies(cfg) + ((("viser", "viewer"),) if cmd.view else ()))  # before the dataset is read
     scene = load(cmd.path)
+    from nerfpipe.plugins.triangulate import wants_points
+
+    if wants_points(scene):  # nerfpipe run's sfm stage would triangulate them; this command trains what it is given
+        print(f"nerfpipe train: {cmd.path} holds real photographs with poses but no sparse points; without them the field has "
+              "only the cameras' box and explains the surroundings with fog. `nerfpipe run` triangulates the points from the "
+              "poses first (its sfm stage).", file=sys.stderr)  # fmt: skip
     trainer = Trainer(cfg, scene, name, cmd.model_options, out, started=started)
     from nerfpipe.viewer.training import train_watched
 
