@@ -14,7 +14,7 @@ from nerfpipe.data.normalize import bounds_from_points
 from nerfpipe.training.runs import load_run
 from nerfpipe.training.trainer import scene_info
 from nerfpipe.pipeline.stages import Pipeline
-from nerfpipe.plugins.triangulate import flat_border_fraction, neighbour_pairs, wants_points
+from nerfpipe.plugins.triangulate import chosen_photos, flat_border_fraction, neighbour_pairs, wants_points
 
 SCALE = 0.25
 """The fox's 1080x1920 photos at a quarter of their size (270x480)."""
@@ -62,6 +62,19 @@ def test_posed_photos_get_points_that_reproject_onto_their_tracks(fox_subset, tm
     again = Pipeline(["sfm", "load"], {"sfm": FAST}).run(fox_subset, tmp_path)
     assert [r.status for r in again.records] == ["skipped", "skipped"]
     assert torch.equal(again.context.get("scene").points.xyz, pts.xyz)
+
+
+def test_many_photos_are_triangulated_from_an_even_subset(fox_subset, tmp_path):
+    assert chosen_photos(10, 0) == list(range(10)) and chosen_photos(4, 6) == [0, 1, 2, 3]
+    chosen = chosen_photos(10, 6)
+    assert len(chosen) == 6 and chosen[0] == 0 and chosen[-1] == 9
+    result = Pipeline(["sfm", "load"], {"sfm": {**FAST, "triangulate_max_photos": 6}}).run(fox_subset, tmp_path)
+    scene, summary = result["scene"], json.loads((tmp_path / "sfm" / "sfm.json").read_text())
+    assert summary["num_photos"] == 10 and summary["num_triangulated_photos"] == 6
+    pts = scene.points
+    assert set(pts.track_camera.tolist()) <= set(chosen) and len(pts.xyz) > 100
+    uv, _ = scene.cameras[pts.track_camera].project(pts.xyz[pts.track_point].float())
+    assert float((uv - pts.track_xy.float()).norm(dim=-1).median()) < 1.0  # each observation on its own camera's pixel
 
 
 def test_a_trained_run_reloads_with_the_triangulated_points(fox_subset, tmp_path):

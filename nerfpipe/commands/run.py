@@ -68,7 +68,8 @@ def _figures(run_dir: Path) -> "list[str]":
     """One line per headline figure found in the run folder (SfM, check, training)."""
     lines, read = [], lambda p: json.loads(p.read_text()) if p.is_file() else None  # noqa: E731
     if (sfm := read(run_dir / "sfm" / "sfm.json")) is not None and "num_registered" not in sfm:
-        lines.append(f"sfm: {sfm['num_points3D']} points triangulated with the poses of {sfm['num_photos']} photos")
+        lines.append(f"sfm: {sfm['num_points3D']} points triangulated with the poses of {sfm.get('num_triangulated_photos', sfm['num_photos'])} "
+                     f"of {sfm['num_photos']} photos")
     elif sfm is not None:
         lines.append(f"sfm: {sfm['num_registered']} of {sfm['num_photos']} photos registered, {sfm['num_points3D']} points")
     if (check := read(run_dir / "check.json")) is not None:

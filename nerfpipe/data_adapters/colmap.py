@@ -156,16 +156,18 @@ def _check_image(path: Path, cam) -> None:
         )
 
 
-def _points(rec, images) -> "Points3D | None":
-    """The points, with the track elements whose image is one of ``images`` (by camera, then keypoint)."""
+def _points(rec, images, cameras: "list[int] | None" = None) -> "Points3D | None":
+    """The points, with the track elements whose image is one of ``images`` (by camera, then keypoint); image ``k``
+    is camera ``cameras[k]`` of the scene (default ``k``)."""
     if rec.num_points3D() == 0:
         return None
-    camera_of = {im.image_id: i for i, im in enumerate(images)}
+    camera_of = {im.image_id: (i if cameras is None else cameras[i]) for i, im in enumerate(images)}
     pts = [rec.points3D[i] for i in sorted(rec.points3D)]
     obs = [(camera_of[e.image_id], e.point2D_idx, r) for r, p in enumerate(pts) for e in p.track.elements if e.image_id in camera_of]
     cam, keypoint, row = np.array(sorted(obs), dtype=np.int64).reshape(-1, 3).T
     keypoints = [np.array([p.xy for p in im.points2D], dtype=np.float64).reshape(-1, 2) for im in images]
-    first = np.cumsum([0] + [len(k) for k in keypoints])[:-1]  # row of each image's first keypoint
+    first_of = dict(zip(camera_of.values(), np.cumsum([0] + [len(k) for k in keypoints])[:-1]))  # row of each image's first keypoint
+    first = np.array([first_of.get(c, 0) for c in range(max(camera_of.values(), default=-1) + 1)], dtype=np.int64)
     return Points3D(
         xyz=torch.tensor(np.array([p.xyz for p in pts]), dtype=torch.float64),
         rgb=torch.tensor(np.array([p.color for p in pts]), dtype=torch.uint8),
@@ -181,24 +183,26 @@ POINTS_MODEL = "points_model"
 
 
 def with_points(scene: SceneData, model_dir: Path) -> SceneData:
-    """``scene`` with the sparse points of the COLMAP model in ``model_dir`` (in ``scene``'s input frame, one
-    image per camera named ``NNNNN.jpg`` by camera index, its cameras possibly downscaled: the track pixels
-    are scaled to the scene's images), and the near/far bounds and box that the points give
+    """``scene`` with the sparse points of the COLMAP model in ``model_dir`` (in ``scene``'s input frame, its images
+    named ``NNNNN.jpg`` by the index of the scene's camera, some or all of them, its cameras possibly downscaled: the
+    track pixels are scaled to the scene's images), and the near/far bounds and box that the points give
     (:func:`~nerfpipe.data.normalize.bounds_from_points`), as a COLMAP capture gets them."""
     import dataclasses
 
     rec = _open(Path(model_dir))
     images = sorted(rec.images.values(), key=lambda im: im.name)
     index = [int(Path(im.name).stem) if Path(im.name).stem.isdigit() else -1 for im in images]
-    if index != list(range(len(scene.cameras))):
-        raise NerfpipeError(f"the points' model has {len(images)} images, not one per camera of the scene ({len(scene.cameras)})", model_dir)
-    points = _points(rec, images)
+    if not all(0 <= i < len(scene.cameras) for i in index) or len(set(index)) != len(index):
+        raise NerfpipeError(f"the points' model names images that are not cameras of the scene ({len(scene.cameras)} cameras)", model_dir)
+    points = _points(rec, images, index)
     if points is None:
         return scene
     cams = scene.cameras
-    size = torch.tensor([[rec.camera(im.camera_id).width, rec.camera(im.camera_id).height] for im in images], dtype=torch.float64)
-    scale = torch.stack([cams.width.double(), cams.height.double()], -1).reshape(-1, 2) / size
-    points.track_xy = points.track_xy * scale[points.track_camera]
+    size = torch.ones(len(cams), 2, dtype=torch.float64)
+    full = torch.stack([cams.width.double(), cams.height.double()], -1).reshape(-1, 2)
+    for i, im in zip(index, images):
+        size[i] = torch.tensor([rec.camera(im.camera_id).width, rec.camera(im.camera_id).height], dtype=torch.float64)
+    points.track_xy = points.track_xy * (full / size)[points.track_camera]
     points.xyz = scene.world_from_input.apply_points(points.xyz).float()
     near, far, aabb = bounds_from_points(cams, points.xyz)
     meta = scene.meta | {POINTS_MODEL: str(Path(model_dir).resolve())}

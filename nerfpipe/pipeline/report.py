@@ -277,7 +277,7 @@ CHECK_KEYS = ["num_cameras", "num_probes", "kornia_max_px", "kornia_unproject_ma
               "reproj_mean_px", "reproj_median_px", "colmap_reported_mean_px", "points_in_front_fraction"]  # fmt: skip
 
 
-SFM_KEYS = ["mode", "num_photos", "num_registered", "unregistered", "dropped", "num_points3D", "mean_reprojection_error_px"]
+SFM_KEYS = ["mode", "num_photos", "num_triangulated_photos", "num_registered", "unregistered", "dropped", "num_points3D", "mean_reprojection_error_px"]
 
 
 def scene_section(scene: "dict | None", check: "dict | None", sfm: "dict | None" = None) -> str:

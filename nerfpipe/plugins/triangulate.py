@@ -50,33 +50,42 @@ def flat_border_fraction(image: np.ndarray, band: float = 0.03, tolerance: int =
     return float((np.abs(ring - median) <= tolerance).all(axis=1).mean())
 
 
-def neighbour_pairs(scene: SceneData, neighbours: int) -> "list[tuple[int, int]]":
-    """Pairs of cameras to match: each camera with its ``neighbours`` nearest by viewing direction and
-    position (each distance over its median, summed), once per pair."""
-    c2w = scene.cameras.world_from_cam.double().reshape(-1, 4, 4)
+def chosen_photos(count: int, max_photos: int) -> "list[int]":
+    """The cameras whose photographs are triangulated: all, or ``max_photos`` spread evenly over the scene's order
+    (a video's frames: every k-th) when there are more (0: all)."""
+    if max_photos <= 0 or count <= max_photos:
+        return list(range(count))
+    return sorted({int(round(k)) for k in np.linspace(0, count - 1, max_photos)})
+
+
+def neighbour_pairs(scene: SceneData, neighbours: int, chosen: "list[int] | None" = None) -> "list[tuple[int, int]]":
+    """Pairs of cameras to match (among ``chosen``, default all): each camera with its ``neighbours`` nearest by
+    viewing direction and position (each distance over its median, summed), once per pair."""
+    chosen = list(range(len(scene.cameras))) if chosen is None else chosen
+    c2w = scene.cameras.world_from_cam.double().reshape(-1, 4, 4)[torch.tensor(chosen, dtype=torch.long)]
     centres, axes = c2w[:, :3, 3], c2w[:, :3, 2]
     angle = torch.arccos((axes @ axes.T).clamp(-1, 1))
     dist = torch.cdist(centres, centres)
     score = angle / angle.median().clamp(min=1e-9) + dist / dist.median().clamp(min=1e-9)
     score.fill_diagonal_(float("inf"))
     k = min(neighbours, len(c2w) - 1)
-    return sorted({tuple(sorted((i, int(j)))) for i in range(len(c2w)) for j in score[i].argsort()[:k]})
+    return sorted({tuple(sorted((chosen[i], chosen[int(j)]))) for i in range(len(c2w)) for j in score[i].argsort()[:k]})
 
 
-def downscale(scene: SceneData, out: Path, max_size: int) -> "list[tuple[int, int]]":
-    """Write camera ``i``'s photograph as ``out/image_name(i)``, longest side at most ``max_size``; return
-    the written sizes."""
+def downscale(scene: SceneData, out: Path, max_size: int, chosen: "list[int]") -> "dict[int, tuple[int, int]]":
+    """Write camera ``i``'s photograph as ``out/image_name(i)`` for each ``i`` of ``chosen``, longest side at most
+    ``max_size``; return the written sizes by camera."""
     from PIL import Image
 
     out.mkdir(parents=True, exist_ok=True)
-    sizes = []
-    for i in range(len(scene.cameras)):
+    sizes = {}
+    for i in chosen:
         pixels = scene.images.load(i)[..., :3]
         h, w = pixels.shape[:2]
         s = min(1.0, max_size / max(w, h)) if max_size > 0 else 1.0
         size = (max(1, round(w * s)), max(1, round(h * s)))
         Image.fromarray(pixels).resize(size, Image.LANCZOS).save(out / image_name(i), quality=95)
-        sizes.append(size)
+        sizes[i] = size
     return sizes
 
 
@@ -93,20 +102,22 @@ def _camera(pycolmap, scene: SceneData, i: int, camera_id: int, size: "tuple[int
     return cam
 
 
-def triangulate(scene: SceneData, work: Path, max_size: int, max_features: int, neighbours: int, threads: int, on_step=None):
-    """Triangulate sparse points for ``scene`` with its poses and intrinsics fixed; return (a
-    ``pycolmap.Reconstruction`` in the input frame, seconds per step). Scratch files go to ``work``."""
+def triangulate(scene: SceneData, work: Path, max_size: int, max_features: int, neighbours: int, threads: int, max_photos: int = 0, on_step=None):
+    """Triangulate sparse points for ``scene`` with its poses and intrinsics fixed, from the photographs of
+    :func:`chosen_photos`; return (a ``pycolmap.Reconstruction`` in the input frame, seconds per step). Scratch files
+    go to ``work``."""
     pycolmap = require("pycolmap", "colmap")
     seconds, t = {}, time.monotonic()
     images, db = work / "images", work / "database.db"
     db.unlink(missing_ok=True)
-    sizes = downscale(scene, images, max_size)
+    chosen = chosen_photos(len(scene.cameras), max_photos)
+    sizes = downscale(scene, images, max_size, chosen)
     ext = pycolmap.FeatureExtractionOptions()
     ext.num_threads, ext.sift.max_num_features = threads, max_features
     pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=ext, device=pycolmap.Device.cpu)
     seconds["features"], t = time.monotonic() - t, time.monotonic()
     (on_step or (lambda name: None))("features")
-    pairs = neighbour_pairs(scene, neighbours)
+    pairs = neighbour_pairs(scene, neighbours, chosen)
     (work / "pairs.txt").write_text("".join(f"{image_name(a)} {image_name(b)}\n" for a, b in pairs))
     match = pycolmap.FeatureMatchingOptions()
     match.num_threads = threads
