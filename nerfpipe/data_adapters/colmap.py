@@ -161,20 +161,20 @@ def _points(rec, images, cameras: "list[int] | None" = None) -> "Points3D | None
     is camera ``cameras[k]`` of the scene (default ``k``)."""
     if rec.num_points3D() == 0:
         return None
-    camera_of = {im.image_id: (i if cameras is None else cameras[i]) for i, im in enumerate(images)}
+    position = {im.image_id: k for k, im in enumerate(images)}
     pts = [rec.points3D[i] for i in sorted(rec.points3D)]
-    obs = [(camera_of[e.image_id], e.point2D_idx, r) for r, p in enumerate(pts) for e in p.track.elements if e.image_id in camera_of]
-    cam, keypoint, row = np.array(sorted(obs), dtype=np.int64).reshape(-1, 3).T
+    obs = [(position[e.image_id], e.point2D_idx, r) for r, p in enumerate(pts) for e in p.track.elements if e.image_id in position]
+    image, keypoint, row = np.array(sorted(obs), dtype=np.int64).reshape(-1, 3).T
     keypoints = [np.array([p.xy for p in im.points2D], dtype=np.float64).reshape(-1, 2) for im in images]
-    first_of = dict(zip(camera_of.values(), np.cumsum([0] + [len(k) for k in keypoints])[:-1]))  # row of each image's first keypoint
-    first = np.array([first_of.get(c, 0) for c in range(max(camera_of.values(), default=-1) + 1)], dtype=np.int64)
+    first = np.cumsum([0] + [len(k) for k in keypoints])[:-1]  # row of each image's first keypoint
+    cam = image if cameras is None else np.asarray(cameras, dtype=np.int64)[image]
     return Points3D(
         xyz=torch.tensor(np.array([p.xyz for p in pts]), dtype=torch.float64),
         rgb=torch.tensor(np.array([p.color for p in pts]), dtype=torch.uint8),
         error=torch.tensor(np.array([p.error for p in pts]), dtype=torch.float64),
         track_point=torch.from_numpy(row.copy()),
         track_camera=torch.from_numpy(cam.copy()),
-        track_xy=torch.from_numpy(np.concatenate(keypoints)[first[cam] + keypoint]),
+        track_xy=torch.from_numpy(np.concatenate(keypoints)[first[image] + keypoint]),
     )
 
 

@@ -29,7 +29,8 @@ from nerfpipe.util.paths import resolve_inside
 SCENE_JSON = "scene.json"
 INPUT_DIR = "input"
 SFM_DIR = "sfm"
-POINTS_DIR = "sfm/points"
+POINTS_DIR = f"{SFM_DIR}/points"
+"""The ``sfm`` stage's points triangulated for a posed input (:data:`nerfpipe.plugins.sfm.POINTS_DIR` in its folder)."""
 
 
 @dataclass

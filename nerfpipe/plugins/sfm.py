@@ -95,13 +95,9 @@ def photo_folder(path: "Path | None") -> "Path | None":
 def applies(ctx: StageContext) -> bool:
     """Photos that no adapter can read, or a posed real capture without points (:func:`posed_without_points`);
     never an in-memory reconstruction."""
-    from nerfpipe import data_adapters
-
     if "reconstruction" in ctx.cache or ctx.source is None:
         return False
-    try:
-        data_adapters.detect(ctx.source)
-    except NerfpipeError:
+    if not _adapter_reads(ctx.source):
         return photo_folder(ctx.source) is not None
     return posed_without_points(ctx) is not None
 
@@ -115,14 +111,8 @@ def posed_without_points(ctx: StageContext):
     config = ctx.configs.get("sfm") or SfmConfig()
     if not config.triangulate or "scene" in ctx.cache:
         return None
-    scene = data_adapters.load(ctx.source, (ctx.configs.get("load") or _load_config()).format)
+    scene = data_adapters.load(ctx.source, getattr(ctx.configs.get("load"), "format", None))
     return scene if wants_points(scene) else None
-
-
-def _load_config():
-    from nerfpipe.plugins.load import LoadConfig
-
-    return LoadConfig()
 
 
 def _photos(folder: Path) -> "list[Path]":

@@ -107,6 +107,7 @@ def triangulate(scene: SceneData, work: Path, max_size: int, max_features: int, 
     :func:`chosen_photos`; return (a ``pycolmap.Reconstruction`` in the input frame, seconds per step). Scratch files
     go to ``work``."""
     pycolmap = require("pycolmap", "colmap")
+    step = on_step or (lambda name: None)
     seconds, t = {}, time.monotonic()
     images, db = work / "images", work / "database.db"
     db.unlink(missing_ok=True)
@@ -116,7 +117,7 @@ def triangulate(scene: SceneData, work: Path, max_size: int, max_features: int, 
     ext.num_threads, ext.sift.max_num_features = threads, max_features
     pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=ext, device=pycolmap.Device.cpu)
     seconds["features"], t = time.monotonic() - t, time.monotonic()
-    (on_step or (lambda name: None))("features")
+    step("features")
     pairs = neighbour_pairs(scene, neighbours, chosen)
     (work / "pairs.txt").write_text("".join(f"{image_name(a)} {image_name(b)}\n" for a, b in pairs))
     match = pycolmap.FeatureMatchingOptions()
@@ -124,7 +125,7 @@ def triangulate(scene: SceneData, work: Path, max_size: int, max_features: int, 
     pycolmap.match_image_pairs(db, matching_options=match, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=work / "pairs.txt"),
                                device=pycolmap.Device.cpu)  # fmt: skip
     seconds["matching"], t = time.monotonic() - t, time.monotonic()
-    (on_step or (lambda name: None))("matching")
+    step("matching")
     cam_from_input = torch.linalg.inv(scene.world_from_input.inverse().apply_world_from_cam(scene.cameras.world_from_cam.double())).numpy()
     rec = pycolmap.Reconstruction()
     database = pycolmap.Database.open(db)
