@@ -4,7 +4,8 @@ per step as ratios, val PSNR at equal steps (deterministic on CPU), model MB and
 
 Run: ``python -m benchmarks.side_by_side LEGO --variants "dense:preset='small'" "compact:preset='compact'" --marks 300 3000``.
 A variant is ``NAME:OPTIONS`` with options ``KEY=VALUE`` separated by spaces (as ``benchmarks.steps``;
-``preset=...`` sets the capacity preset, default ``auto``). Prints one JSON line per variant and mark,
+``preset=...`` sets the capacity preset, default ``auto``; ``train.KEY=VALUE`` a ``TrainerConfig`` field, e.g.
+``train.train_max_size=480``). Prints one JSON line per variant and mark,
 and appends them to ``--log`` when given.
 """
 
@@ -18,7 +19,7 @@ import json
 import os
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -48,17 +49,19 @@ class SideBySideConfig:
     """Append the JSON lines to this file."""
 
 
-def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...]]":
-    """``"name:preset='small' levels=(8,16)"`` -> ``("name", "small", ("levels=(8,16)",))``."""
+def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...], dict]":
+    """``"name:preset='small' levels=(8,16) train.rays_per_step=8192"`` -> ``("name", "small", ("levels=(8,16)",), {"rays_per_step": 8192})``."""
     name, _, rest = text.partition(":")
-    options, preset = [], "auto"
+    options, preset, trainer = [], "auto", {}
     for item in rest.split():
         key, _, value = item.partition("=")
         if key == "preset":
             preset = ast.literal_eval(value)
+        elif key.startswith("train."):
+            trainer[key.split(".", 1)[1]] = ast.literal_eval(value)
         else:
             options.append(item)
-    return name, preset, tuple(options)
+    return name, preset, tuple(options), trainer
 
 
 def main(cfg: SideBySideConfig) -> "list[dict]":
@@ -74,8 +77,8 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
     with tempfile.TemporaryDirectory() as tmp:
         runs = []
         for i, text in enumerate(cfg.variants):
-            name, preset, options = parse_variant(text)
-            trainer = Trainer(tcfg, scene, "fast", model_config(preset, options), Path(tmp) / str(i))
+            name, preset, options, overrides = parse_variant(text)
+            trainer = Trainer(replace(tcfg, **overrides), scene, "fast", model_config(preset, options), Path(tmp) / str(i))
             trainer.model.train()
             runs.append(dict(name=name, trainer=trainer, wall=0.0))
         for mark in cfg.marks:

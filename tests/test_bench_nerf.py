@@ -82,8 +82,9 @@ def test_steps_ab_tool_parses_options_and_validates_at_each_mark(scene_path, tmp
 def test_side_by_side_interleaves_variants_and_reports_size(scene_path, tmp_path):
     from benchmarks.side_by_side import SideBySideConfig, main, parse_variant
 
-    assert parse_variant("dense:preset='small' levels=(8,16)") == ("dense", "small", ("levels=(8,16)",))
-    assert parse_variant("compact:") == ("compact", "auto", ())
+    assert parse_variant("dense:preset='small' levels=(8,16)") == ("dense", "small", ("levels=(8,16)",), {})
+    assert parse_variant("compact:") == ("compact", "auto", (), {})
+    assert parse_variant("s:train.train_max_size=480 tv_weight=0.1") == ("s", "auto", ("tv_weight=0.1",), {"train_max_size": 480})
     rows = main(SideBySideConfig(tiny_lego(scene_path, tmp_path), variants=("dense:preset='small' levels=(8,16)", "compact:preset='compact' log2_hashmap_size=9"),
                                  marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads()))
     assert [r["name"] for r in rows] == ["dense", "compact"] and all(r["step"] == 3 and r["s_per_step"] > 0 for r in rows)

@@ -212,3 +212,20 @@ def test_camera_rays_equals_generate_rays():
         torch.testing.assert_close(fast.directions.reshape(-1, 3), slow.directions)
         torch.testing.assert_close(fast.origins.reshape(-1, 3), slow.origins)
         torch.testing.assert_close(fast.z_scale.reshape(-1), slow.z_scale)
+
+
+@pytest.mark.parametrize("distortion", [Distortion.NONE, Distortion.OPENCV])
+def test_capped_cameras_see_the_same_rays_through_the_same_image_points(distortion):
+    """A camera capped to half its size: the ray through half-size position (u, v) is the full-size camera's ray
+    through (2u, 2v) (the same point of the image); cameras already small enough are unchanged."""
+    params = [0.1, -0.02, 0.001, 0.002] if distortion == Distortion.OPENCV else None
+    cams = Cameras.create(torch.eye(4).expand(2, 4, 4), [800.0, 300.0], [790.0, 300.0], [400.0, 160.0], [300.0, 120.0],
+                          [800, 320], [600, 240], distortion, params, dtype=torch.float64)
+    half = cams.capped(400)
+    assert half.width.tolist() == [400, 320] and half.height.tolist() == [300, 240]  # the second is small enough
+    assert torch.equal(half.fx[1], cams.fx[1]) and torch.equal(half.dist_params, cams.dist_params)
+    uv = torch.tensor([[10.5, 20.5], [399.5, 0.5], [200.0, 150.0]], dtype=torch.float64)
+    idx = torch.zeros(3, dtype=torch.long)
+    small, full = generate_rays(half, idx, uv), generate_rays(cams, idx, 2 * uv)
+    torch.testing.assert_close(small.directions, full.directions, rtol=0, atol=1e-12)
+    assert cams.capped(None) is cams

@@ -368,3 +368,27 @@ def test_pose_corrections_rotate_rays_about_their_camera_and_stay_zero_mean():
     out = model.get_outputs(rays, torch.zeros(64, 3))
     out.rgb.sum().backward()
     assert float(model.pose_deltas.grad.abs().sum()) > 0
+
+
+def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_path):
+    """``max_side``: training pixels are the area means of the photographs at that size, and the rays through the
+    keypoints (scaled with them) still pass by their 3D points, at the smaller images' reprojection error."""
+    from nerfpipe.data_adapters import load
+    from nerfpipe.training.pixel_sampler import PixelSampler, area_resize
+
+    scene = load(scene_path("colmap_mouse"))
+    sampler = PixelSampler(scene, "train", "black", track_rays=256, max_side=480)
+    cams = sampler.cameras
+    assert {(int(w), int(h)) for w, h in zip(cams.width, cams.height)} <= {(480, 360), (360, 480)}
+    assert len(sampler) == int((cams.width * cams.height).sum())
+    first = torch.from_numpy(scene.images.load(int(scene.splits["train"][0])))
+    small = area_resize(first, int(cams.width[0]), int(cams.height[0]))
+    block = first[:4, :4].float().mean((0, 1))  # a 4x4 block of the 1920-pixel photograph is one pixel at 480
+    assert (small[0, 0].float() - block).abs().max() <= 0.5
+    assert torch.equal(sampler.pixels[: small.numel() // 3], small.reshape(-1, 3))
+    batch = sampler.sample(1024, torch.Generator().manual_seed(0))
+    depth = batch.depth[-256:]
+    pts = batch.rays.origins[-256:] + depth[:, None] * batch.rays.directions[-256:]
+    d = torch.cdist(pts.double(), scene.points.xyz.double()).amin(dim=1) / depth.double()
+    assert float(d.median()) < 1.5 / 1400  # within ~1.5 full-size pixels (~0.4 at 480) of a sparse point
+    assert len(sampler.tracks) > 0.8 * len(scene.points.track_camera) * len(scene.splits["train"]) / len(scene.cameras)

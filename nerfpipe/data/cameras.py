@@ -17,7 +17,7 @@ Blender/NeRF/nerfstudio ``transform_matrix`` is camera-to-world in the OpenGL co
 (+y up, camera looks along -z); :func:`opengl_to_opencv` converts it.
 """
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
 import torch
@@ -146,6 +146,17 @@ class Cameras(TensorDataclass):
         k[..., 0, 2], k[..., 1, 2] = self.cx, self.cy
         k[..., 2, 2] = 1
         return k
+
+    def capped(self, max_side: "int | None") -> "Cameras":
+        """The same cameras with the longer image side at most ``max_side`` pixels (the same field of view:
+        intrinsics scaled per axis by the rounded size; distortion, in normalised coordinates, unchanged).
+        Cameras already small enough are returned as they are; None: no cap."""
+        if max_side is None:
+            return self
+        s = torch.clamp(max_side / torch.maximum(self.width, self.height).to(self.fx), max=1.0)
+        w, h = (self.width * s).round().clamp(min=1), (self.height * s).round().clamp(min=1)
+        sx, sy = w / self.width, h / self.height
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w.long(), height=h.long())
 
     def has_distortion(self) -> bool:
         return bool((self.distortion != Distortion.NONE).any())

@@ -141,14 +141,6 @@ def hausdorff_distance(a: TriangleMesh, b: TriangleMesh, samples: int = 200_000)
     return {"max": max(d_ab["max"], d_ba["max"]), "mean": 0.5 * (d_ab["mean"] + d_ba["mean"])}
 
 
-def _scaled(cameras: Cameras, max_side: int) -> Cameras:
-    """Cameras shrunk so the longer image side is at most ``max_side`` pixels (same field of view)."""
-    s = torch.clamp(max_side / torch.maximum(cameras.width, cameras.height).to(cameras.fx), max=1.0)
-    w, h = (cameras.width * s).round().clamp(min=1), (cameras.height * s).round().clamp(min=1)
-    sx, sy = w / cameras.width, h / cameras.height
-    return Cameras(cameras.world_from_cam, cameras.fx * sx, cameras.fy * sy, cameras.cx * sx, cameras.cy * sy, w.long(), h.long(), cameras.distortion, cameras.dist_params)
-
-
 def visible_faces(
     mesh: TriangleMesh, cameras: Cameras, max_side: int = 128, tolerance: "float | None" = None, front_only: bool = False,
 ) -> Bool[np.ndarray, "num_faces"]:
@@ -164,7 +156,7 @@ def visible_faces(
     o3d = require("open3d", "mesh")
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh.to_open3d_tensor())
-    cams = _scaled(cameras.reshape(-1).to(dtype=torch.float64), max_side)
+    cams = cameras.reshape(-1).to(dtype=torch.float64).capped(max_side)
     tol = 0.005 * mesh.diagonal() if tolerance is None else tolerance
     centres = torch.from_numpy(mesh.vertices[mesh.faces].mean(1))
     normals = torch.from_numpy(mesh.face_normals())

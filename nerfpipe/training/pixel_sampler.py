@@ -3,31 +3,45 @@
 Images are loaded once and kept as one uint8 tensor of pixels ``[P, C]`` (images may differ in
 size); a batch picks pixel indices, finds their camera through per-image offsets and generates
 rays with :func:`nerfpipe.data.rays.generate_rays`. RGBA pixels are composited on the batch's
-background colour (random per ray in training when the mode is ``random``).
+background colour (random per ray in training when the mode is ``random``). With a ``max_side``,
+images larger than that are area-downscaled once at load and rays come from the matching cameras
+(:meth:`nerfpipe.data.cameras.Cameras.capped`).
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from nerfpipe.data.background import background_colors, composite_pixels
+from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.rays import RayBundle, generate_rays
 from nerfpipe.data.scene import SceneData
 from nerfpipe.util.typing import Float, Tensor, UInt8
 
 
-def load_split_pixels(scene: SceneData, split: str) -> "tuple[Tensor, Tensor]":
-    """All pixels of a split as uint8 ``[P, C]`` and the offsets ``[n+1]`` of each image."""
+def load_split_pixels(scene: SceneData, split: str, cameras: "Cameras | None" = None) -> "tuple[Tensor, Tensor]":
+    """All pixels of a split as uint8 ``[P, C]`` and the offsets ``[n+1]`` of each image; with ``cameras``
+    (the split's, possibly :meth:`~nerfpipe.data.cameras.Cameras.capped`), each image area-resized to its size."""
     chans = 4 if scene.has_alpha else 3
     flat, offsets = [], [0]
-    for i in scene.splits[split]:
+    for k, i in enumerate(scene.splits[split]):
         img = np.asarray(scene.images.load(int(i)))
         if img.shape[-1] < chans:
             img = np.concatenate([img, np.full((*img.shape[:2], chans - img.shape[-1]), 255, np.uint8)], axis=-1)
-        flat.append(torch.from_numpy(np.ascontiguousarray(img[..., :chans])).reshape(-1, chans))
+        img = torch.from_numpy(np.ascontiguousarray(img[..., :chans]))
+        if cameras is not None and (int(cameras.height[k]), int(cameras.width[k])) != tuple(img.shape[:2]):
+            img = area_resize(img, int(cameras.width[k]), int(cameras.height[k]))
+        flat.append(img.reshape(-1, chans))
         offsets.append(offsets[-1] + flat[-1].shape[0])
     return torch.cat(flat), torch.tensor(offsets, dtype=torch.long)
+
+
+def area_resize(img: UInt8[Tensor, "H W C"], width: int, height: int) -> UInt8[Tensor, "h w C"]:
+    """``img`` resized to ``width x height`` by area averaging (each pixel the mean of what it covers), rounded to uint8."""
+    x = img.permute(2, 0, 1)[None].float()
+    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8)
 
 
 @dataclass
@@ -52,16 +66,20 @@ class TrackRays:
     points behind the camera are dropped.
     """
 
-    def __init__(self, scene: SceneData, split: str, pixels: UInt8[Tensor, "P C"], offsets: Tensor) -> None:
+    def __init__(self, scene: SceneData, split: str, pixels: UInt8[Tensor, "P C"], offsets: Tensor, cameras: "Cameras | None" = None) -> None:
+        """``cameras``: the split's cameras the ``pixels`` were taken at (default the scene's; smaller ones scale the keypoints)."""
         pts = scene.points
         local = torch.full((len(scene.cameras),), -1, dtype=torch.long)
         local[torch.as_tensor(scene.splits[split], dtype=torch.long)] = torch.arange(len(scene.splits[split]))
         cam = local[pts.track_camera]
         uv = pts.track_xy.double()
         xyz = pts.xyz.double()[pts.track_point]
-        cameras = scene.split_cameras(split)
+        full = scene.split_cameras(split)
+        cameras = full if cameras is None else cameras
         keep = cam >= 0
         cam, uv, xyz = cam[keep], uv[keep], xyz[keep]
+        scale = torch.stack([cameras.width.double() / full.width.double(), cameras.height.double() / full.height.double()], -1).reshape(-1, 2)
+        uv = uv * scale[cam]
         w, h = cameras.width[cam].double(), cameras.height[cam].double()
         inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < w) & (uv[:, 1] < h)
         cam, uv, xyz = cam[inside], uv[inside], xyz[inside]
@@ -86,16 +104,19 @@ class TrackRays:
 class PixelSampler:
     """Uniform random pixels across every image of a split."""
 
-    def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu", track_rays: int = 0) -> None:
-        self.cameras = scene.split_cameras(split).to(device)
-        self.widths = self.cameras.width.cpu()
+    def __init__(self, scene: SceneData, split: str = "train", background: str = "black", device="cpu", track_rays: int = 0,
+                 max_side: "int | None" = None) -> None:
+        """``max_side``: the longer side of the images rays are drawn from, at most (larger ones are area-downscaled)."""
+        cameras = scene.split_cameras(split).capped(max_side)
+        self.cameras = cameras.to(device)
+        self.widths = cameras.width.clone()
         """Width of each image, on the host (indexing the device's copy would read it back every step)."""
-        self.pixels, self.offsets = load_split_pixels(scene, split)
+        self.pixels, self.offsets = load_split_pixels(scene, split, cameras)
         self.num_pixels = int(self.offsets[-1])
         self.background = background
         self.device = torch.device(device)
         has_tracks = scene.points is not None and scene.points.has_tracks
-        self.tracks = TrackRays(scene, split, self.pixels, self.offsets) if track_rays and has_tracks else None
+        self.tracks = TrackRays(scene, split, self.pixels, self.offsets, cameras) if track_rays and has_tracks else None
         self.track_rays = track_rays if self.tracks is not None and len(self.tracks) else 0
         """Rays per batch through sparse points (the rest are uniform pixels)."""
 

@@ -111,6 +111,6 @@ def load_run(run_dir: Path, device: str = "auto"):
         from nerfpipe.data_adapters.colmap import with_points
 
         scene = with_points(scene, Path(cfg["points"]))
-    model = model_cfg.setup(scene_info(scene)).to(device)
+    model = model_cfg.setup(scene_info(scene, cfg.get("trainer", {}).get("train_max_size"))).to(device)
     load_model_state(model, state, ckpt_path, cfg["model"])
     return scene, model.eval(), cfg

@@ -74,6 +74,10 @@ class TrainerConfig:
     seconds divided by the torch threads; steadier on a shared machine)."""
     rays_per_step: int = 10000
     """Rays per iteration, drawn uniformly from all pixels of all training images."""
+    train_max_size: "int | None" = None
+    """Longer side in pixels of the images training rays are drawn from, at most: larger photographs are
+    area-downscaled once at load (their cameras with them), so each ray's colour is the mean over its pixel's
+    footprint at that size (None: full resolution). The model's capacity follows these pixels."""
     track_rays: int = 512
     """Rays per iteration (of ``rays_per_step``) through the sparse points' track observations, when the
     scene has them (COLMAP): their colour and the distance of the point along them, for models with a
@@ -126,6 +130,7 @@ class TrainerConfig:
             ("eval_scale", 0 < self.eval_scale <= 16, "a positive factor (at most 16)"),
             ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
             ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
+            ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
             ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
             ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
@@ -134,8 +139,9 @@ class TrainerConfig:
         check_device(self.device)
 
 
-def scene_info(scene: SceneData) -> SceneInfo:
-    cams = scene.split_cameras("train")
+def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneInfo:
+    """What a model may know of ``scene`` when it is built, its training images at most ``train_max_size`` pixels on the longer side."""
+    cams = scene.split_cameras("train").capped(train_max_size)
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
     rel = (cams.fx.double() / (cams.width.double() ** 2 + cams.height.double() ** 2).sqrt()).reshape(-1)
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
@@ -186,7 +192,7 @@ class Trainer:
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
-        model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene)), cfg.seed)
+        model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene, cfg.train_max_size)), cfg.seed)
         self.model: Model = model.to(cfg.device)
         self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
         if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
@@ -199,7 +205,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
         self.rays = share(cfg.rays_per_step, self.world)
         """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
-        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world))
+        self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
+                                    max_side=cfg.train_max_size)
         self.sync: "distributed.BufferSync | None" = None
         split = evaluation.eval_split(scene)
         if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
