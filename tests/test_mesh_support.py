@@ -74,6 +74,27 @@ def test_the_plane_an_object_stands_on_is_found_and_removed():
     np.testing.assert_allclose(support_plane(cand, textured, cams, 0.02, normals), plane, atol=0.01)
 
 
+def test_a_flat_slice_of_fog_without_sparse_points_is_no_support():
+    """A few-view mesh: the table under the object is a small noisy patch and a tilted slice of fog holds more
+    surface samples, but no sparse point: the table, which holds the points of the object's base, is chosen."""
+    rng = np.random.default_rng(0)
+    cams = ring()
+    ball = sample_surface(sphere(0.3, (0.0, 0.0, 0.3)), 400, seed=1)[0]
+    table_pts = np.column_stack([rng.uniform(-0.6, 0.6, (400, 2)), np.zeros(400)])
+    table = np.column_stack([rng.uniform(-0.6, 0.6, (400, 2)), rng.normal(scale=0.003, size=400)])
+    tilt = math.radians(15.0)  # the fog slice z = -0.2 + tan(15 deg) x, under every point and camera
+    xy = np.column_stack([rng.uniform(-1.5, 0.6, 1000), rng.uniform(-1.5, 1.5, 1000)])
+    sheet = np.column_stack([xy, -0.2 + math.tan(tilt) * xy[:, 0]])
+    normal = np.array([-math.sin(tilt), 0.0, math.cos(tilt)])
+    points = np.concatenate([ball, table_pts])
+    cand = np.concatenate([sheet, table, points])
+    normals = np.concatenate([np.tile(normal, (1000, 1)), np.tile([0.0, 0.0, 1.0], (400, 1)), np.zeros_like(points)])
+    fog = support_plane(cand, points, cams, 0.02, normals, min_points=0.0)
+    assert fog is not None and abs(fog[:3] @ normal) > 0.999  # by the samples alone, the slice holds more
+    plane = support_plane(cand, points, cams, 0.02, normals)
+    assert plane is not None and plane[2] > 0.999 and abs(plane[3]) < 0.01
+
+
 def test_no_support_plane_without_one():
     ball, cams = sphere(0.5, (0.0, 0.0, 0.5)), ring()
     points = sample_surface(ball, 800, seed=1)[0]

@@ -243,6 +243,7 @@ def support_plane(
     centers: Float[np.ndarray, "num_cameras 3"], tolerance: float, normals: "Float[np.ndarray, 'num_candidates 3'] | None" = None,
     min_inliers: float = 0.05, cameras_above: float = 0.95, points_above: float = 0.98, max_angle_deg: float = 25.0,
     hypotheses: int = 4000, seed: int = 0, up: "Float[np.ndarray, '3'] | None" = None, max_tilt_deg: float = 45.0,
+    min_points: float = 0.01,
 ) -> "Float[np.ndarray, '4'] | None":
     """The plane an object stands on: of the planes with ``cameras_above`` of the cameras on one side and
     ``points_above`` of the object's sparse ``points`` on that side or within ``tolerance`` of it (a plane
@@ -256,6 +257,9 @@ def support_plane(
 
     With ``up`` (the cameras' mean up direction), only planes whose normal lies within ``max_tilt_deg`` of it
     count: a photo collection's wall or the back of a dome also has every camera and point on one side.
+    A plane must also hold ``min_points`` of the ``points`` within ``tolerance``: an object touches what it
+    stands on and SfM sees the contact (even on a white table), while a flat slice through the fog of a mesh
+    fused from few views, which can hold more surface samples than the table's noisy patch, holds none.
 
     Returns:
         ``(a, b, c, d)`` with a unit normal and ``a x + b y + c z + d > 0`` on the cameras' side; None
@@ -272,6 +276,7 @@ def support_plane(
     normal, tri = normal[length > 0] / length[length > 0, None], tri[length > 0]
     planes = np.concatenate([normal, -(normal * tri[:, 0]).sum(axis=1, keepdims=True)], axis=1)
     planes = planes[_bounds_from_below(planes, points, centers, tolerance, cameras_above, points_above)]
+    planes = planes[np.mean(np.abs(points @ planes[:, :3].T + planes[:, 3]) < tolerance, axis=0) >= min_points]
     if up is not None:  # a floor or a table, not a wall: its normal within max_tilt_deg of the cameras' up
         planes = planes[planes[:, :3] @ (np.asarray(up, dtype=np.float64) / np.linalg.norm(up)) >= np.cos(np.radians(max_tilt_deg))]
     if len(planes) == 0:
