@@ -72,9 +72,15 @@ def test_train_stage_takes_its_share_of_the_pipeline_budget(tmp_path):
     from nerfpipe.pipeline.stages import StageContext
     from nerfpipe.plugins.train import TrainStageConfig, _trainer_config
 
+    from nerfpipe.training.evaluation import FINAL_SHARE
+
     stage = TrainStageConfig()
-    share = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0)).train_budget
+    cfg = _trainer_config(stage, StageContext(run_dir=tmp_path, time_budget=100.0))
+    share = cfg.train_budget
     assert 0.6 * 99.0 < share <= 0.6 * 100.0  # budget_share of what is left
+    # end to end, the final evaluation included: training (and the validations' share) first, then the final phase
+    assert share < (1 - FINAL_SHARE) * cfg.time_budget < 1.15 * share and cfg.time_budget < 99.0
+    assert _trainer_config(stage, StageContext(run_dir=tmp_path)).time_budget is None
     capped = replace(stage, trainer=replace(stage.trainer, train_budget=30.0))
     assert _trainer_config(capped, StageContext(run_dir=tmp_path, time_budget=100.0)).train_budget == 30.0
     assert _trainer_config(stage, StageContext(run_dir=tmp_path)).train_budget is None

@@ -315,6 +315,7 @@ class Pipeline:
         on_stage: "Callable[[StageRecord], None] | None" = None,
         reconstruction: object = None,
         images: "str | Path | dict | None" = None,
+        started: "float | None" = None,
     ) -> PipelineResult:
         """Run the chain in ``run_dir``, skipping stages finished before when ``resume``.
 
@@ -328,12 +329,15 @@ class Pipeline:
             on_stage: called after each stage with its record (for progress output).
             reconstruction: an in-memory ``pycolmap.Reconstruction`` to use as the input.
             images: its images: a folder, or ``{image name: uint8 array [H, W, 3]}``.
+            started: when ``time_budget`` began (a ``time.monotonic()`` value; default now): a command gives its
+                process's start, so that the budget holds from the user's command to the last file.
         """
         if time_budget is not None and not time_budget > 0:  # before anything is written (NaN included)
             raise NerfpipeError(f"--time-budget must be a positive number of seconds, got {time_budget}")
         cache = dict(cache or {})
         cache.update({k: v for k, v in (("reconstruction", reconstruction), ("images", images)) if v is not None})
-        ctx = self.context(check_output_folder(run_dir, "the run folder"), source, device=check_device(device), time_budget=time_budget, cache=cache)
+        ctx = self.context(check_output_folder(run_dir, "the run folder"), source, device=check_device(device), time_budget=time_budget, cache=cache,
+                           **({} if started is None else {"started": started}))
         require_all(tuple(d for s in self.specs for d in s.dependencies))
         self.validate(ctx)
         world = distributed.world(ctx.device) if distributed.env_world().active else distributed.SINGLE

@@ -72,11 +72,18 @@ def model_config(name: str, options: dict):
 
 
 def _trainer_config(config: TrainStageConfig, ctx: StageContext) -> TrainerConfig:
-    budget, left = config.trainer.train_budget, ctx.time_left()
+    """The trainer's options under the pipeline's budget: ``budget_share`` of the time left for training, and an
+    end-to-end ``time_budget`` that leaves the validations their share of it and sizes the final evaluation to
+    what follows (a fog box renders slowly: unbounded, its final scoring ran 33 s past a 180 s budget)."""
+    from nerfpipe.training.evaluation import FINAL_SHARE, VALIDATION_SHARE
+
+    budget, end, left = config.trainer.train_budget, config.trainer.time_budget, ctx.time_left()
     if left is not None:
         share = config.budget_share * left
         budget = share if budget is None else min(budget, share)
-    return replace(config.trainer, train_budget=budget, device=ctx.device, video_frames=0)
+        whole = share * (1 + VALIDATION_SHARE) / (1 - FINAL_SHARE)
+        end = whole if end is None else min(end, whole)
+    return replace(config.trainer, train_budget=budget, time_budget=end, device=ctx.device, video_frames=0)
 
 
 def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> bool:
