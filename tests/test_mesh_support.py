@@ -149,6 +149,23 @@ def test_pieces_far_from_the_object_go_and_near_ones_stay():
     assert by_area.num_faces == far_sheet.num_faces
 
 
+def test_a_sheet_beside_the_object_that_no_point_lies_on_goes():
+    """Within the gap, a large piece without sparse points (fog) goes; a part of the object holding its share of
+    the points stays, and so does a small piece without any (a patch of a texture-less side cut off by holes)."""
+    obj = sphere(0.5)
+    part = sphere(0.2, (0.75, 0.0, 0.0), subdivisions=3)
+    sheet = square(-0.6, half=0.6, n=20)  # 0.1 under the object, half its area
+    patch = square(0.0, half=0.05, n=2)
+    patch.vertices += np.array([0.0, 0.6, 0.0])  # 0.1 beside it, under a percent of its area
+    scene = merge(obj, part, sheet, patch)
+    anchors = sample_surface(merge(obj, part), 500, seed=3)[0]
+    kept = remove_small_components(scene, 0.0, max_gap=0.2, anchors=anchors)
+    assert kept.num_faces == scene.num_faces  # without the rule every piece within the gap stays
+    out = remove_small_components(scene, 0.0, max_gap=0.2, anchors=anchors, unsupported=(0.02, 0.05, 0.01))
+    assert out.num_faces == scene.num_faces - sheet.num_faces
+    assert out.info["floater_faces_removed"] == sheet.num_faces
+
+
 def test_faces_seen_only_from_behind_are_unseen():
     shell = sphere(1.0)
     open_front = shell.submesh(shell.vertices[shell.faces].mean(1)[:, 0] < 0.7)  # a hole facing +x

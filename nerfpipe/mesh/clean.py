@@ -51,13 +51,16 @@ def component_labels(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_ver
 
 def remove_small_components(
     mesh: TriangleMesh, min_diameter_fraction: float = 0.05, max_gap: "float | None" = None,
-    anchors: "Float[np.ndarray, 'num_anchors 3'] | None" = None,
+    anchors: "Float[np.ndarray, 'num_anchors 3'] | None" = None, unsupported: "tuple[float, float, float] | None" = None,
 ) -> TriangleMesh:
     """Drop floaters: connected components whose bounding-box diagonal is below ``min_diameter_fraction`` of
     the mesh's and, with ``max_gap``, those farther than ``max_gap`` from the main component.
 
     The main component is the one nearest to the most ``anchors`` (e.g. the object's sparse points: the
-    object, not the largest sheet of fog), or the largest by area without anchors.
+    object, not the largest sheet of fog), or the largest by area without anchors. With ``anchors`` and
+    ``unsupported = (distance, density_share, area_share)``, pieces beside the main one that hold at least
+    ``area_share`` of its area but fewer than ``density_share`` of its anchors per area (anchors within
+    ``distance`` of a vertex) go too: a sheet of fog beside the object, which no SfM point lies on.
     """
     from scipy.spatial import cKDTree
 
@@ -75,8 +78,26 @@ def remove_small_components(
         near = np.bincount(label[others], weights=np.isfinite(gap), minlength=count) > 0
         near[main] = True
         keep &= near
+    if unsupported is not None and anchors is not None and len(anchors) > 0:
+        keep &= ~_unsupported(mesh, label, count, _main_component(mesh, label, count, anchors), anchors, *unsupported)
     out = mesh.submesh(keep[label[mesh.faces[:, 0]]])
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
+    return out
+
+
+def _unsupported(mesh: TriangleMesh, label, count: int, main: int, anchors, distance: float, density_share: float, area_share: float) -> Bool[np.ndarray, "count"]:
+    """Components other than ``main`` with ``area_share`` of its area or more and fewer than ``density_share`` of its
+    anchors (within ``distance`` of one of their vertices) per unit area."""
+    from scipy.spatial import cKDTree
+
+    used = np.unique(mesh.faces)
+    gap, nearest = cKDTree(mesh.vertices[used]).query(np.asarray(anchors, dtype=np.float64), distance_upper_bound=distance)
+    held = np.bincount(label[used[nearest[np.isfinite(gap)]]], minlength=count)
+    v = mesh.vertices[mesh.faces]
+    area = np.bincount(label[mesh.faces[:, 0]], weights=0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1), minlength=count)
+    density = held / np.maximum(area, 1e-300)
+    out = (area >= area_share * area[main]) & (density < density_share * density[main])
+    out[main] = False
     return out
 
 
