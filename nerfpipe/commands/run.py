@@ -183,13 +183,11 @@ def run_main(argv: "list[str]") -> int:
     pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
     pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
     run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
-    import time
-
-    from nerfpipe.commands.train import process_age
+    from nerfpipe.commands.train import budget_start
     from nerfpipe.util.devices import check_device
 
     run_and_print(pipe, cmd.path, run_dir, console, resume=cmd.resume, device=check_device(cmd.device), time_budget=cmd.time_budget,
-                  started=time.monotonic() - process_age())  # the budget counts from the command's start, imports included
+                  started=budget_start())  # from the command's start to its exit
     return 0
 
 
