@@ -132,3 +132,22 @@ def test_level_quantile_encloses_that_share_of_the_surface_points(quantile):
     level = level_from_surface_points(soft_sphere, pts, quantile=quantile)
     inside = (soft_sphere(pts) >= level).float().mean()
     assert float(inside) == pytest.approx(1 - quantile, abs=0.01)
+
+
+def test_canonical_order_makes_shuffled_meshes_equal_and_keeps_the_surface():
+    import trimesh
+
+    from nerfpipe.mesh.container import TriangleMesh
+
+    s = trimesh.creation.icosphere(3)
+    mesh = TriangleMesh(s.vertices, s.faces, np.arange(len(s.vertices) * 3).reshape(-1, 3) % 256)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(mesh.num_vertices)  # another order of the same surface, as another thread schedule gives
+    inverse = np.argsort(perm)
+    faces = np.roll(inverse[mesh.faces], 1, axis=1)[rng.permutation(mesh.num_faces)]
+    shuffled = TriangleMesh(mesh.vertices[perm], faces, mesh.vertex_colors[perm])
+    a, b = mesh.canonical(), shuffled.canonical()
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces) and np.array_equal(a.vertex_colors, b.vertex_colors)
+    tri = lambda m: sorted(tuple(sorted(map(tuple, t))) for t in m.vertices[m.faces])  # noqa: E731
+    assert tri(a) == tri(mesh)  # the same triangles
+    np.testing.assert_allclose(np.sort(a.face_normals(), axis=0), np.sort(mesh.face_normals(), axis=0), atol=1e-12)  # orientation kept

@@ -69,6 +69,20 @@ class TriangleMesh:
         faces = self.faces if np.linalg.det(r) > 0 else self.faces[:, ::-1].copy()
         return replace(self, vertices=verts, faces=faces, info=dict(self.info))
 
+    def canonical(self) -> "TriangleMesh":
+        """The same surface with vertices sorted by position and faces by their vertices (each face turned to start
+        at its smallest index, its orientation kept): meshes that differ only in order (a multi-threaded extraction's)
+        become equal arrays, so what follows (sampling, RANSAC, simplification) repeats exactly."""
+        order = np.lexsort(self.vertices.T[::-1])
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        faces = rank[self.faces]
+        first = faces.argmin(axis=1)
+        faces = faces[np.arange(len(faces))[:, None], (first[:, None] + np.arange(3)) % 3]
+        faces = faces[np.lexsort(faces.T[::-1])]
+        colors = None if self.vertex_colors is None else self.vertex_colors[order]
+        return replace(self, vertices=self.vertices[order], faces=faces, vertex_colors=colors, info=dict(self.info))
+
     def submesh(self, face_mask: "Shaped[np.ndarray, 'num_faces']") -> "TriangleMesh":
         """Keep the faces where ``face_mask`` is true, dropping unreferenced vertices."""
         faces = self.faces[np.asarray(face_mask, dtype=bool)]

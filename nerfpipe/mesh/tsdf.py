@@ -130,7 +130,7 @@ def _from_tensor_mesh(m, has_color: bool) -> TriangleMesh:
     colors = None
     if has_color and "colors" in m.vertex:
         colors = np.clip(m.vertex.colors.numpy() * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return TriangleMesh(verts, faces, colors)
+    return TriangleMesh(verts, faces, colors).canonical()  # Open3D's threads emit the blocks in any order
 
 
 def _crop(mesh: TriangleMesh, aabb: Float[Tensor, "2 3"], voxel_size: float) -> TriangleMesh:
