@@ -100,7 +100,7 @@ def _main(argv: "list[str] | None") -> int:
     except NerfpipeError as exc:
         if debug:
             raise
-        print(f"nerfpipe: error: {exc}", file=sys.stderr)
+        print(f"nerfpipe: error: {_as_given(str(exc), argv)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("nerfpipe: interrupted", file=sys.stderr)
@@ -109,6 +109,20 @@ def _main(argv: "list[str] | None") -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit-time flush must not fail again
         return 141  # 128 + SIGPIPE, what a shell reports for a command the pipe ended
     return int(result) if isinstance(result, int) else 0
+
+
+def _as_given(message: str, argv: "list[str]") -> str:
+    """A parameter error (``--iters must be …``, as a config names its own field) names the option as it was typed
+    when one option of ``argv`` ends with that field (``--train.trainer.iters``)."""
+    import re
+
+    m = re.match(r"(.*?)--([\w-]+) must be ", message)
+    if m is None:
+        return message
+    name = m.group(2).replace("_", "-")
+    typed = {a.split("=", 1)[0] for a in argv if a.startswith("--")}
+    given = sorted(f for f in typed if f.replace("_", "-").endswith("." + name))
+    return message.replace(f"--{m.group(2)}", given[0], 1) if len(given) == 1 else message
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -121,6 +121,8 @@ def test_clean_errors_keep_their_cause_for_debug(tmp_path):
         (["train", "{data}", "--iters", "-1"], "--iters"),
         (["run", "{data}", "--time-budget", "-5"], "--time-budget"),
         (["run", "{data}", "--time-budget", "nan"], "--time-budget"),
+        (["run", "{data}", "--train.trainer.iters", "-1"], "--train.trainer.iters must be"),  # as typed, not the config's own name
+        (["run", "{data}", "--render.frames", "0"], "--render.frames must be"),
     ],
 )
 def test_impossible_parameters_are_one_line_and_write_nothing(tmp_path, scene_path, capsys, args, name):
