@@ -116,13 +116,12 @@ def _as_given(message: str, argv: "list[str]") -> str:
     when one option of ``argv`` ends with that field (``--train.trainer.iters``)."""
     import re
 
-    m = re.match(r"(.*?)--([\w-]+) must be ", message)
+    m = re.search(r"--([\w-]+) must be ", message)
     if m is None:
         return message
-    name = m.group(2).replace("_", "-")
     typed = {a.split("=", 1)[0] for a in argv if a.startswith("--")}
-    given = sorted(f for f in typed if f.replace("_", "-").endswith("." + name))
-    return message.replace(f"--{m.group(2)}", given[0], 1) if len(given) == 1 else message
+    given = sorted(f for f in typed if f.replace("_", "-").endswith("." + m.group(1).replace("_", "-")))
+    return message.replace(f"--{m.group(1)}", given[0], 1) if len(given) == 1 else message
 
 
 if __name__ == "__main__":  # pragma: no cover

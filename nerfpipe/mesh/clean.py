@@ -71,15 +71,17 @@ def remove_small_components(
     np.minimum.at(lo, label, mesh.vertices)
     np.maximum.at(hi, label, mesh.vertices)
     keep = np.linalg.norm(hi - lo, axis=1) >= min_diameter_fraction * mesh.diagonal()
-    if max_gap is not None:
+    has_anchors = anchors is not None and len(anchors) > 0
+    if max_gap is not None or (unsupported is not None and has_anchors):
         main = _main_component(mesh, label, count, anchors)
+    if max_gap is not None:
         others = np.flatnonzero((label != main) & keep[label])
         gap, _ = cKDTree(mesh.vertices[label == main]).query(mesh.vertices[others], distance_upper_bound=max_gap)
         near = np.bincount(label[others], weights=np.isfinite(gap), minlength=count) > 0
         near[main] = True
         keep &= near
-    if unsupported is not None and anchors is not None and len(anchors) > 0:
-        keep &= ~_unsupported(mesh, label, count, _main_component(mesh, label, count, anchors), anchors, *unsupported)
+    if unsupported is not None and has_anchors:
+        keep &= ~_unsupported(mesh, label, count, main, anchors, *unsupported)
     out = mesh.submesh(keep[label[mesh.faces[:, 0]]])
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
     return out

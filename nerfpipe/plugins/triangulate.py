@@ -77,13 +77,13 @@ def downscale(scene: SceneData, out: Path, max_size: int, chosen: "list[int]") -
     ``max_size``; return the written sizes by camera."""
     from PIL import Image
 
+    from nerfpipe.outputs.render import capped_size
+
     out.mkdir(parents=True, exist_ok=True)
     sizes = {}
     for i in chosen:
         pixels = scene.images.load(i)[..., :3]
-        h, w = pixels.shape[:2]
-        s = min(1.0, max_size / max(w, h)) if max_size > 0 else 1.0
-        size = (max(1, round(w * s)), max(1, round(h * s)))
+        size = capped_size(pixels.shape[1], pixels.shape[0], 1.0, max_size if max_size > 0 else None)
         Image.fromarray(pixels).resize(size, Image.LANCZOS).save(out / image_name(i), quality=95)
         sizes[i] = size
     return sizes
