@@ -170,7 +170,7 @@ def make_config(spec: StageSpec, values: "dict | None", where: "str | Path | Non
     """The stage's config with ``values`` (from TOML or a dict) applied; unknown keys are errors."""
     if values is not None and not isinstance(values, dict):
         raise NerfpipeError(f"options of stage '{spec.name}' must be a table of name = value, not {type(values).__name__}", where)
-    return from_dict(spec.config(), values or {}, f"stage '{spec.name}'", where)
+    return from_dict(spec.config(), values or {}, f"stage '{spec.name}'", where, table=spec.name)
 
 
 # ---------------------------------------------------------------- the pipeline

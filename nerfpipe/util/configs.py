@@ -9,6 +9,7 @@ become paths where it takes a :class:`~pathlib.Path`.
 
 import dataclasses
 import json
+import re
 import types
 import typing
 from pathlib import Path
@@ -51,7 +52,8 @@ def to_dict(config: object) -> dict:
 
 
 def from_dict(
-    default: object, values: dict, what: "str | None" = None, where: "str | Path | None" = None, dropped: "list[str] | None" = None
+    default: object, values: dict, what: "str | None" = None, where: "str | Path | None" = None, dropped: "list[str] | None" = None,
+    table: "str | None" = None,
 ) -> object:
     """``default`` (a config dataclass instance, or its class for the class's defaults) with ``values`` applied.
 
@@ -62,6 +64,8 @@ def from_dict(
         where: the file the values came from, named in errors.
         dropped: for values an earlier nerfpipe wrote (a run's ``config.json``): unknown options (one this version
             no longer has) are left out and their dotted names appended here, instead of refused.
+        table: the dotted name of ``values``' table in that file (``train.trainer``): a value the config refuses is
+            named by its key there (``train.trainer.iters must be 0 or more``), not by the config's own option.
 
     Raises:
         NerfpipeError: an unknown option (unless ``dropped`` is given), or a value the config refuses.
@@ -79,7 +83,8 @@ def from_dict(
     if unknown:
         dropped.extend(unknown)
     inner = {key: [] for key in values if key in names}
-    values = {key: _value(getattr(default, key), hints[key], value, f"{what} option '{key}'", where, None if dropped is None else inner[key])
+    values = {key: _value(getattr(default, key), hints[key], value, f"{what} option '{key}'", where, None if dropped is None else inner[key],
+                          None if table is None else f"{table}.{key}")
               for key, value in values.items() if key in names}  # fmt: skip
     if dropped is not None:
         dropped.extend(f"{key}.{name}" for key, names_ in inner.items() for name in names_)
@@ -90,18 +95,20 @@ def from_dict(
     except NerfpipeError as exc:  # the config's own check of a value: name the file it came from
         if exc.path is not None or where is None:
             raise
-        raise NerfpipeError(exc.problem, where) from exc
+        problem = exc.problem if table is None else re.sub(r"^--([\w-]+) must be ", lambda m: f"{table}.{m.group(1).replace('-', '_')} must be ", exc.problem)
+        raise NerfpipeError(problem, where) from exc
 
 
-def _value(current: object, hint: object, value: object, what: str, where: "str | Path | None", dropped: "list[str] | None" = None) -> object:
-    """One option's value from its JSON/TOML form, by the field's current value and type hint (``dropped``: as
-    :func:`from_dict`'s, for a nested config)."""
+def _value(current: object, hint: object, value: object, what: str, where: "str | Path | None", dropped: "list[str] | None" = None,
+           table: "str | None" = None) -> object:
+    """One option's value from its JSON/TOML form, by the field's current value and type hint (``dropped`` and
+    ``table``: as :func:`from_dict`'s, for a nested config)."""
     if hint in _SCALARS and not _SCALARS[hint](value):
         raise NerfpipeError(f"{what} must be {hint.__name__}, not {type(value).__name__} ({value!r})", where)
     if isinstance(value, dict) and dataclasses.is_dataclass(current):
-        return from_dict(current, value, what, where, dropped)
+        return from_dict(current, value, what, where, dropped, table)
     if isinstance(value, dict) and isinstance(hint, type) and dataclasses.is_dataclass(hint):
-        return from_dict(hint, value, what, where, dropped)
+        return from_dict(hint, value, what, where, dropped, table)
     if isinstance(value, list) and (isinstance(current, tuple) or _accepts(hint, tuple)):
         return tuple(value)  # JSON and TOML have no tuples
     if isinstance(value, str) and (isinstance(current, Path) or (_accepts(hint, Path) and not _accepts(hint, str))):
