@@ -200,7 +200,42 @@ def test_error_image_size_mismatch(tmp_path):
     victim = sorted((root / "images").iterdir())[2]
     iio.imwrite(victim, np.zeros((10, 20, 3), np.uint8))
     err = _error(root)
-    assert "20x10" in err.problem and "64x48" in err.problem and err.path == victim
+    assert "20x10" in err.problem and "64x48" in err.problem and "nor a downscaled copy" in err.problem and err.path == victim
+
+
+def test_downscaled_images_scale_their_cameras_and_keypoints(scene_path, tmp_path):
+    """``images/`` replaced by smaller copies after SfM (LLFF's / mip-NeRF 360's ``images_N``), at two scales in one
+    folder: each camera and its keypoints are scaled to its image, the points reproject onto the keypoints at
+    COLMAP's error in the smaller pixels, and the cameras see the same rays."""
+    from PIL import Image
+
+    from nerfpipe.data.consistency import check_scene
+
+    src = scene_path("colmap_mouse")
+    rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
+    keep = sorted(rec.images.values(), key=lambda im: im.name)[:6]
+    for im in rec.images.values():
+        if im.image_id not in {k.image_id for k in keep}:
+            rec.deregister_frame(im.frame_id)
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(tmp_path / "sparse" / "0"))
+    (tmp_path / "images").mkdir()
+    for k, im in enumerate(keep):
+        photo = Image.open(src / "images" / im.name)
+        factor = 2 if k == 0 else 4
+        photo.resize((photo.width // factor, photo.height // factor), Image.BOX).save(tmp_path / "images" / im.name)
+    full, small = data_adapters.load(src), data_adapters.load(tmp_path)
+    assert len(small.cameras) == 6 and small.meta[colmap.IMAGE_SCALE] == [0.5] + [0.25] * 5
+    names = [Path(p).name for p in full.images.paths]
+    for k, im in enumerate(keep):
+        i, s = names.index(im.name), (0.5 if k == 0 else 0.25)
+        assert int(small.cameras.width[k]) == int(full.cameras.width[i]) * s
+        for name in ("fx", "fy", "cx", "cy"):
+            assert float(getattr(small.cameras, name)[k]) == pytest.approx(float(getattr(full.cameras, name)[i]) * s, rel=1e-6)
+    report = check_scene(small)
+    assert report.failures == []
+    colmap_px = rec.compute_mean_reprojection_error()
+    assert 0.25 * colmap_px < report.reproj_point_mean_px < 0.5 * colmap_px  # in the smaller images' pixels
 
 
 def test_error_nan_pose(tmp_path):

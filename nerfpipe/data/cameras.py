@@ -154,9 +154,15 @@ class Cameras(TensorDataclass):
         if max_side is None:
             return self
         s = torch.clamp(max_side / torch.maximum(self.width, self.height).to(self.fx), max=1.0)
-        w, h = (self.width * s).round().clamp(min=1), (self.height * s).round().clamp(min=1)
-        sx, sy = w / self.width, h / self.height
-        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w.long(), height=h.long())
+        return self.resized((self.width * s).round().clamp(min=1), (self.height * s).round().clamp(min=1))
+
+    def resized(self, width: Tensor, height: Tensor) -> "Cameras":
+        """The same cameras for images of ``width`` x ``height`` pixels (each camera's own, or one for all):
+        the same field of view, intrinsics scaled per axis (distortion, in normalised coordinates, unchanged)."""
+        w = torch.as_tensor(width).to(self.fx).expand_as(self.fx)
+        h = torch.as_tensor(height).to(self.fx).expand_as(self.fx)
+        sx, sy = w / self.width.to(self.fx), h / self.height.to(self.fx)
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w.round().long(), height=h.round().long())
 
     def has_distortion(self) -> bool:
         return bool((self.distortion != Distortion.NONE).any())

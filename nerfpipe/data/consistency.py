@@ -211,11 +211,16 @@ def sparse_reprojection(scene: SceneData, chunk: int = 100_000) -> "dict | None"
     n = len(xyz)
     count = torch.bincount(pi, minlength=n).double()
     per_point = torch.zeros(n, dtype=torch.float64).index_add_(0, pi, err)[count > 0] / count[count > 0]
+    colmap = scene.meta.get("colmap_mean_reprojection_error")
+    scale = scene.meta.get("colmap_image_scale")  # downscaled images: COLMAP's figure in their pixels
+    if colmap is not None and scale is not None:
+        in_model = torch.zeros(n, dtype=torch.float64).index_add_(0, pi, err / torch.tensor(scale, dtype=torch.float64)[ci])
+        colmap = colmap * float(per_point.mean()) / float((in_model[count > 0] / count[count > 0]).mean())
     return {
         "reproj_mean_px": float(err.mean()),
         "reproj_median_px": float(err.median()),
         "reproj_point_mean_px": float(per_point.mean()),
-        "colmap_reported_mean_px": scene.meta.get("colmap_mean_reprojection_error"),
+        "colmap_reported_mean_px": colmap,
         "points_in_front_fraction": float((depth > 0).double().mean()),
     }
 

@@ -4,6 +4,8 @@ Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``,
 files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
 Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
 ``images/`` (:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
+An image may be a downscaled copy of what COLMAP saw (the same aspect, to a pixel): its camera and
+keypoints are scaled to it.
 
 Only registered images become cameras, sorted by image name; every 8th of them is ``val``
 (:func:`nerfpipe.data.scene.holdout_split`). COLMAP already uses nerfpipe's camera convention
@@ -32,6 +34,9 @@ from nerfpipe.util.paths import resolve_inside
 from nerfpipe.util.registry import AdapterSpec
 
 MODEL_FILES = ("cameras", "images", "points3D")
+IMAGE_SCALE = "colmap_image_scale"
+"""``SceneData.meta`` key, when images are downscaled copies: each camera's image width over COLMAP's (its
+pixels are that much smaller than the model's, in which ``colmap_mean_reprojection_error`` is measured)."""
 
 
 def _param_map(model: str, p: "list[float]") -> "tuple[float, float, float, float, Distortion, list[float]] | None":
@@ -146,14 +151,18 @@ def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
     return mapped, model
 
 
-def _check_image(path: Path, cam) -> None:
+def _image_size(path: Path, cam) -> "tuple[int, int]":
+    """The image's ``(width, height)``: its camera's, or the same picture downscaled (``images/`` replaced by
+    smaller copies after SfM, as LLFF's and mip-NeRF 360's ``images_N`` folders are): the camera is scaled to it."""
     if not path.is_file():
         raise NerfpipeError("image file is missing (registered in the COLMAP model)", path)
     h, w, _ = image_header(path)
-    if (w, h) != (cam.width, cam.height):
+    s = w / cam.width
+    if (w, h) != (cam.width, cam.height) and not (1 / 64 <= s < 1 and abs(h - cam.height * s) <= 1):
         raise NerfpipeError(
-            f"image is {w}x{h} but its COLMAP camera {cam.camera_id} is {cam.width}x{cam.height}", path
+            f"image is {w}x{h} but its COLMAP camera {cam.camera_id} is {cam.width}x{cam.height} (nor a downscaled copy of that size)", path
         )
+    return w, h
 
 
 def _points(rec, images, cameras: "list[int] | None" = None) -> "Points3D | None":
@@ -246,8 +255,9 @@ def read(path: Path) -> SceneData:
         raise NerfpipeError("COLMAP model has no registered images", images_file)
     cams, models = _cameras(rec, images, cameras_file, images_file)
     paths = [resolve_inside(root / "images", im.name, images_file) for im in images]
-    for p, im in zip(paths, images):
-        _check_image(p, rec.camera(im.camera_id))
+    width, height = zip(*(_image_size(p, rec.camera(im.camera_id)) for p, im in zip(paths, images)))
+    if (list(width), list(height)) != (cams.width.tolist(), cams.height.tolist()):
+        cams = cams.resized(torch.tensor(width), torch.tensor(height))
     return _assemble(root, rec, images, cams, models, paths)
 
 
@@ -257,6 +267,8 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
     cams.world_from_cam = norm.apply_world_from_cam(cams.world_from_cam)
     points = _points(rec, images)
     if points is not None:
+        model_size = torch.tensor([[rec.camera(im.camera_id).width, rec.camera(im.camera_id).height] for im in images], dtype=torch.float64)
+        points.track_xy = points.track_xy * (torch.stack([cams.width, cams.height], -1).double() / model_size)[points.track_camera]  # downscaled images
         points.xyz = norm.apply_points(points.xyz).float()
         near, far, aabb = bounds_from_points(cams, points.xyz)
     else:
@@ -265,6 +277,9 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
         near, far, aabb = bounds_from_cameras(cams)
     rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale
     meta = {"colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
+    scale = [float(w) / rec.camera(im.camera_id).width for w, im in zip(cams.width, images)]
+    if any(s != 1.0 for s in scale):
+        meta[IMAGE_SCALE] = scale
     return SceneData(
         cameras=cams.to(dtype=torch.float32),
         images=ImageSet(paths=paths),
