@@ -9,7 +9,9 @@ from scipy.spatial import cKDTree
 
 from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.scene import Similarity
-from nerfpipe.mesh.clean import faces_blocking_sight_lines, faces_on_or_below_plane, remove_small_components, support_plane, visible_faces
+from nerfpipe.mesh.clean import (
+    faces_blocking_sight_lines, faces_on_or_below_plane, faces_outside_footprint, remove_small_components, support_plane, visible_faces,
+)
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.metrics import sample_surface
 from nerfpipe.mesh.pipeline import MeshConfig, build_meshes, plane_in_input_frame
@@ -164,6 +166,27 @@ def test_a_sheet_beside_the_object_that_no_point_lies_on_goes():
     out = remove_small_components(scene, 0.0, max_gap=0.2, anchors=anchors, unsupported=(0.02, 0.05, 0.01))
     assert out.num_faces == scene.num_faces - sheet.num_faces
     assert out.info["floater_faces_removed"] == sheet.num_faces
+
+
+def test_sheets_beside_an_object_on_its_support_go_and_the_object_stays():
+    """A sheet of fog joined to the object (a skirt just above the table, a wall at the region's side): their feet on the
+    support plane lie outside the footprint of the object's points; the object, its texture-less overhang within the
+    margin included, stays. Points on the table (within the tolerance) do not widen the footprint."""
+    obj = sphere(0.5, (0.0, 0.0, 0.5))
+    skirt = square(0.08, half=1.2, n=24)  # 0.08 above the table: beyond the support tolerance
+    wall = TriangleMesh(np.array([[1.0, -0.5, 0.0], [1.0, 0.5, 0.0], [1.0, 0.5, 1.0], [1.0, -0.5, 1.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    scene = merge(obj, skirt, wall)
+    pts = sample_surface(obj, 400, seed=6)[0]
+    pts = pts[pts[:, 0] < 0.4]  # the +x side of the object is texture-less: no points there
+    table_pts = np.random.default_rng(0).uniform([-1.2, -1.2, 0.0], [1.2, 1.2, 0.01], (100, 3))
+    plane = np.array([0.0, 0.0, 1.0, 0.0])
+    out = faces_outside_footprint(scene, plane, np.concatenate([pts, table_pts]), tolerance=0.05, margin=0.15)
+    n_obj, n_skirt = obj.num_faces, skirt.num_faces
+    assert not out[:n_obj].any()  # all of the object, its side without points too
+    feet = skirt.vertices[skirt.faces].mean(1)[:, :2]
+    far = np.linalg.norm(feet, axis=1) > 0.5 + 0.15 + 0.05
+    assert out[n_obj : n_obj + n_skirt][far].all() and out[n_obj + n_skirt :].all()
+    assert not faces_outside_footprint(scene, plane, table_pts, tolerance=0.05, margin=0.15).any()  # no object points: nothing
 
 
 def test_faces_seen_only_from_behind_are_unseen():

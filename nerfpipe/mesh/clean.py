@@ -343,3 +343,29 @@ def faces_on_or_below_plane(mesh: TriangleMesh, plane: Float[np.ndarray, "4"], t
     cameras never see below it)."""
     height = mesh.vertices @ plane[:3] + plane[3]
     return (height[mesh.faces] < tolerance).all(axis=1)
+
+
+def faces_outside_footprint(
+    mesh: TriangleMesh, plane: Float[np.ndarray, "4"], points: Float[np.ndarray, "num_points 3"], tolerance: float, margin: float
+) -> Bool[np.ndarray, "num_faces"]:
+    """Faces whose foot on the support ``plane`` lies more than ``margin`` outside the object's footprint: the
+    convex hull, on the plane, of the sparse ``points`` more than ``tolerance`` above it (an object that stands on
+    a table stands over its own points; what lies beside it is table or fog). None outside when fewer than three
+    points are above the plane or they are all on a line."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    n, d = plane[:3] / np.linalg.norm(plane[:3]), plane[3] / np.linalg.norm(plane[:3])
+    above = points[points @ n + d > tolerance]
+    outside = np.zeros(mesh.num_faces, dtype=bool)
+    if len(above) < 3:
+        return outside
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    basis = np.stack([a, np.cross(n, a)], axis=1)  # [3, 2]: coordinates on the plane
+    try:
+        hull = ConvexHull(above @ basis)
+    except QhullError:
+        return outside
+    feet = mesh.vertices[mesh.faces].mean(axis=1) @ basis
+    # the largest signed distance to the hull's edge lines: a lower bound of the distance to the hull outside it
+    return (feet @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1) > margin

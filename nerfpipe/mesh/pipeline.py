@@ -20,7 +20,8 @@ from nerfpipe.data.cameras import Cameras
 from nerfpipe.util.atomic import write_json
 from nerfpipe.util.errors import NerfpipeError, refuse_unless
 from nerfpipe.mesh.clean import (
-    close_holes, faces_blocking_sight_lines, faces_near_box_sides, faces_on_or_below_plane, hausdorff_distance, remove_small_components,
+    close_holes, faces_blocking_sight_lines, faces_near_box_sides, faces_on_or_below_plane, faces_outside_footprint, hausdorff_distance,
+    remove_small_components,
     simplify, support_plane, visible_faces,
 )
 from nerfpipe.data.normalize import upright_direction
@@ -109,6 +110,10 @@ class MeshConfig:
     support_max_tilt: float = 45.0
     """The support plane's normal lies within this many degrees of the cameras' mean up direction (a floor or a
     table; the Sacre Coeur photos otherwise gave a plane through the back of the dome)."""
+    footprint_margin: "float | None" = 0.05
+    """With a support plane, faces whose foot on it lies farther than this share of the sparse points' extent
+    outside the footprint of the object's points (their convex hull on the plane) are removed: table and fog beside
+    the object (None: kept)."""
     support_tolerance: float = 0.02
     """Faces up to this height above the support plane go with it (fraction of the robust extent diagonal of
     the sparse points on the object); also the RANSAC inlier distance. On colmap_mouse with a TSDF of 25
@@ -306,6 +311,10 @@ def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfi
         return mesh
     below = faces_on_or_below_plane(mesh, plane, tolerance)
     figures["support_faces_removed"] = int(below.sum())
+    if cfg.footprint_margin is not None:
+        beside = faces_outside_footprint(mesh, plane, points, tolerance, cfg.footprint_margin * robust_diagonal(points)) & ~below
+        figures["footprint_faces_removed"] = int(beside.sum())
+        below |= beside
     return mesh if below.all() else mesh.submesh(~below)
 
 
