@@ -256,8 +256,7 @@ def read(path: Path) -> SceneData:
     cams, models = _cameras(rec, images, cameras_file, images_file)
     paths = [resolve_inside(root / "images", im.name, images_file) for im in images]
     width, height = zip(*(_image_size(p, rec.camera(im.camera_id)) for p, im in zip(paths, images)))
-    if (list(width), list(height)) != (cams.width.tolist(), cams.height.tolist()):
-        cams = cams.resized(torch.tensor(width), torch.tensor(height))
+    cams = cams.resized(torch.tensor(width), torch.tensor(height))  # the same cameras unless the images are downscaled copies
     return _assemble(root, rec, images, cams, models, paths)
 
 
@@ -266,9 +265,10 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
     norm = auto_normalization(cams)
     cams.world_from_cam = norm.apply_world_from_cam(cams.world_from_cam)
     points = _points(rec, images)
+    model_size = torch.tensor([[rec.camera(im.camera_id).width, rec.camera(im.camera_id).height] for im in images], dtype=torch.float64)
+    scale = torch.stack([cams.width, cams.height], -1).double() / model_size  # [n, 2]: 1 unless the images are downscaled copies
     if points is not None:
-        model_size = torch.tensor([[rec.camera(im.camera_id).width, rec.camera(im.camera_id).height] for im in images], dtype=torch.float64)
-        points.track_xy = points.track_xy * (torch.stack([cams.width, cams.height], -1).double() / model_size)[points.track_camera]  # downscaled images
+        points.track_xy = points.track_xy * scale[points.track_camera]
         points.xyz = norm.apply_points(points.xyz).float()
         near, far, aabb = bounds_from_points(cams, points.xyz)
     else:
@@ -277,9 +277,8 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
         near, far, aabb = bounds_from_cameras(cams)
     rec.update_point_3d_errors()  # recompute with COLMAP's own projection, in case the file's are stale
     meta = {"colmap_mean_reprojection_error": rec.compute_mean_reprojection_error()}
-    scale = [float(w) / rec.camera(im.camera_id).width for w, im in zip(cams.width, images)]
-    if any(s != 1.0 for s in scale):
-        meta[IMAGE_SCALE] = scale
+    if bool((scale != 1.0).any()):
+        meta[IMAGE_SCALE] = scale[:, 0].tolist()
     return SceneData(
         cameras=cams.to(dtype=torch.float32),
         images=ImageSet(paths=paths),

@@ -144,11 +144,8 @@ class ErrorMap:
         row = y0 + (u[:, 1] * h).long().minimum(h - 1)
         return self.offsets[cam] + row * self.widths[cam] + col, tiles
 
-    def tiles_of(self, idx: Tensor) -> Tensor:
-        """The tile of each flat pixel index."""
-        cam = torch.searchsorted(self.offsets, idx, right=True) - 1
-        local = idx - self.offsets[cam]
-        col, row = local % self.widths[cam], local // self.widths[cam]
+    def tiles_of(self, cam: Tensor, col: Tensor, row: Tensor) -> Tensor:
+        """The tile of pixel ``(col, row)`` of image ``cam``."""
         return self.tile_offsets[cam] + (row // self.tile) * self.cols[cam] + col // self.tile
 
     def update(self, tiles: Tensor, errors: Tensor) -> None:
@@ -231,11 +228,13 @@ class PixelSampler:
             n = int(round(num_rays * self.error_share))
             picked, tiles = self.errors.draw(n, generator)
             idx = torch.cat([picked, idx[n:]])
-            self.last_tiles = torch.cat([tiles, self.errors.tiles_of(idx[n:])])
         cam = torch.searchsorted(self.offsets, idx, right=True) - 1
         local = idx - self.offsets[cam]
         width = self.widths[cam]
-        uv = torch.stack([local % width, local // width], dim=-1).float() + 0.5
+        col, row = local % width, local // width
+        if self.errors is not None:
+            self.last_tiles = torch.cat([tiles, self.errors.tiles_of(cam[n:], col[n:], row[n:])])
+        uv = torch.stack([col, row], dim=-1).float() + 0.5
         bg = background_colors(self.background, num_rays, generator)
         rgb = composite_pixels(self.pixels[idx], bg)
         rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv))
