@@ -227,6 +227,19 @@ def test_pipeline_from_toml(tmp_path):
             Pipeline.from_toml(toml, registry=toy_registry())
 
 
+def test_pipeline_file_values_the_command_line_overrides_are_not_read(tmp_path):
+    from nerfpipe.commands.run import given_stage_options
+
+    toml = tmp_path / "pipe.toml"
+    toml.write_text('stages = ["a", "b"]\n[a]\nvalue = "seven"\n[b]\nvalue = 3\n')
+    with pytest.raises(NerfpipeError, match="value"):
+        Pipeline.from_toml(toml, registry=toy_registry())
+    given = given_stage_options(["DATA", "--a.value", "5", "--b.other-thing=2", "--out", "x", "--pipeline", str(toml)])
+    assert given == ("a.value", "b.other_thing")
+    pipe = Pipeline.from_toml(toml, registry=toy_registry(), overridden=given)
+    assert pipe.configs["a"] == ToyConfig() and pipe.configs["b"] == ToyConfig(value=3)  # the file's other values stay
+
+
 def test_run_folder_of_another_input_is_refused(tmp_path):
     Pipeline(["a"], registry=toy_registry()).run(tmp_path / "x", tmp_path / "run")
     with pytest.raises(NerfpipeError, match="made from"):

@@ -93,14 +93,14 @@ def _mesh_line(m: dict) -> str:
     return "mesh: " + "; ".join(parts)
 
 
-def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict):
+def _pipeline(stages: "str | None", pipeline: "Path | None", registry: dict, overridden: "tuple[str, ...]" = ()):
     from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline
     from nerfpipe.util.errors import NerfpipeError
 
     if stages is not None and pipeline is not None:
         raise NerfpipeError("give --stages or --pipeline, not both")
     if pipeline is not None:
-        return Pipeline.from_toml(pipeline, registry=registry)
+        return Pipeline.from_toml(pipeline, registry=registry, overridden=overridden)
     chain = DEFAULT_CHAIN if stages is None else [s.strip() for s in stages.split(",") if s.strip()]
     return Pipeline(list(chain), registry=registry)
 
@@ -167,6 +167,13 @@ def _option_value(argv: "list[str]", name: str) -> "str | None":
     return None
 
 
+def given_stage_options(argv: "list[str]") -> "tuple[str, ...]":
+    """The stage options set on the command line, dotted with underscores: ``--train.trainer.time-budget=9`` ->
+    ``train.trainer.time_budget``."""
+    names = (a[2:].split("=", 1)[0] for a in argv if a.startswith("--"))
+    return tuple(n.replace("-", "_") for n in names if "." in n)
+
+
 def run_main(argv: "list[str]") -> int:
     """``nerfpipe run PATH [--stages ...|--pipeline FILE] [--STAGE.OPTION VALUE ...]``: a pipeline file's
     options are the defaults, the command line changes them."""
@@ -175,12 +182,13 @@ def run_main(argv: "list[str]") -> int:
     console = _console()
     registry = installed_stages(console)
     toml = _option_value(argv, "--pipeline")
-    defaults = dict(_pipeline(None, Path(toml), registry).configs) if toml is not None and "--help" not in argv else {}
+    given = given_stage_options(argv)
+    defaults = dict(_pipeline(None, Path(toml), registry, given).configs) if toml is not None and "--help" not in argv else {}
     cmd = tyro.cli(run_command_type(registry, defaults), args=argv, prog="nerfpipe run")
     if not Path(cmd.path).exists():
         raise NerfpipeError("no such file or folder", cmd.path)
     _log_to(console)
-    pipe = _pipeline(cmd.stages, cmd.pipeline, registry)
+    pipe = _pipeline(cmd.stages, cmd.pipeline, registry, given)
     pipe.configs.update({name: getattr(cmd, name) for name in pipe.names if hasattr(cmd, name)})
     run_dir = cmd.out if cmd.out is not None else Path("runs") / Path(cmd.path).stem
     from nerfpipe.commands.train import budget_start

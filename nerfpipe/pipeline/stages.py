@@ -41,7 +41,7 @@ import logging
 import shutil
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -255,8 +255,10 @@ class Pipeline:
         return [s.name for s in self.specs]
 
     @classmethod
-    def from_toml(cls, path: "str | Path", registry: "dict[str, StageSpec] | None" = None) -> "Pipeline":
-        """Read ``stages = [...]`` and one ``[<stage name>]`` table of options per stage.
+    def from_toml(cls, path: "str | Path", registry: "dict[str, StageSpec] | None" = None, overridden: "Iterable[str]" = ()) -> "Pipeline":
+        """Read ``stages = [...]`` and one ``[<stage name>]`` table of options per stage; the options named in
+        ``overridden`` (dotted, ``train.trainer.iters``: the command line sets them) are left out of the file's
+        values unread, so a value there that the command line replaces is not refused.
 
         Example file (nested config dataclasses take nested tables)::
 
@@ -273,6 +275,13 @@ class Pipeline:
             doc = tomllib.loads(path.read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise NerfpipeError(f"cannot read pipeline file ({type(exc).__name__}: {exc})", path) from exc
+        for key in overridden:
+            *tables, name = key.split(".")
+            table = doc
+            for t in tables:
+                table = table.get(t) if isinstance(table, dict) else None
+            if isinstance(table, dict) and tables:
+                table.pop(name, None)
         chain = doc.pop("stages", None)
         if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain) or not chain:
             raise NerfpipeError("a pipeline file needs 'stages = [\"load\", ...]', a list of stage names", path)
