@@ -26,6 +26,7 @@ import torch
 import tyro
 
 from benchmarks.steps import append_log, model_config, trainer_config
+from nerfpipe.data.orbit import path_cameras
 
 
 @dataclass
@@ -47,6 +48,9 @@ class SideBySideConfig:
     seed: int = 0
     log: "Path | None" = None
     """Append the JSON lines to this file."""
+    pictures: "Path | None" = None
+    """After the last mark, write this PNG: one row per variant of four orbit views (around the scene box at the
+    training cameras' distance and elevation), longer side ``eval_max_size``, to see fog that PSNR hides."""
 
 
 def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...], dict]":
@@ -97,10 +101,33 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
                 rows.append(dict(name=run["name"], step=mark, wall=round(run["wall"], 2), s_per_step=round(run["wall"] / mark, 4),
                                  psnr=round(psnr, 3), colour_fitted=round(trainer.last_fitted_psnr, 3),
                                  appearance_fitted=None if fitted is None else round(fitted, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
-                                 samples_per_ray=round(stats["samples_per_ray"], 2), load=round(os.getloadavg()[0], 2)))
+                                 samples_per_ray=round(stats["samples_per_ray"], 2),
+                                 occupied=round(stats.get("occupied_fraction", 0.0), 4), load=round(os.getloadavg()[0], 2)))
                 print(json.dumps(rows[-1]), flush=True)
+        if cfg.pictures is not None:
+            write_orbit_strips(cfg.pictures, scene, [r["trainer"] for r in runs], cfg.eval_max_size)
     append_log(cfg.log, rows)
     return rows
+
+
+def write_orbit_strips(path: Path, scene, trainers: list, max_size: "int | None", views: int = 4) -> None:
+    """One row per trainer of ``views`` orbit views (:func:`nerfpipe.data.orbit.path_cameras`) as a PNG."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from nerfpipe.data.background import background_colors
+    from nerfpipe.outputs.render import render_cameras, to_uint8
+    from nerfpipe.util.atomic import write_bytes
+
+    cams = path_cameras(scene, "orbit", 4 * views)[:: 4]
+    if max_size:
+        cams = cams.capped(max_size)
+    rows = []
+    for trainer in trainers:
+        device = next(trainer.model.parameters()).device
+        rendered = render_cameras(trainer.model, cams.to(device), background=background_colors(trainer.eval_bg, 1)[0])
+        rows.append(np.concatenate([to_uint8(v.rgb) for v in rendered], axis=1))
+    write_bytes(path, iio.imwrite("<bytes>", np.concatenate(rows, axis=0), extension=".png"))
 
 
 if __name__ == "__main__":

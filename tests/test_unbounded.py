@@ -2,12 +2,13 @@
 the field behind the box (renders, learns, leaves the box's own rendering alone where it is opaque),
 and the per-image colour corrections (zero-mean, identity at evaluation)."""
 
+import pytest
 import torch
 
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
-from nerfpipe.models.base import SceneInfo
+from nerfpipe.models.base import RenderOutputs, SceneInfo
 from nerfpipe.models.fast import FastConfig
 
 
@@ -392,3 +393,36 @@ def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_pa
     d = torch.cdist(pts.double(), scene.points.xyz.double()).amin(dim=1) / depth.double()
     assert float(d.median()) < 1.5 / 1400  # within ~1.5 full-size pixels (~0.4 at 480) of a sparse point
     assert len(sampler.tracks) > 0.8 * len(scene.points.track_camera) * len(scene.splits["train"]) / len(scene.cameras)
+
+
+def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
+    from nerfpipe.models.fast import SPARSITY_REAL
+
+    assert _model().sparsity_weight == SPARSITY_REAL > 0
+    info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100)
+    assert FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True)).sparsity_weight == 0.0
+    model = _model(sparsity_weight=1.0)
+    model.train()
+    model.generator = torch.Generator().manual_seed(0)
+    grids = list(model.field.density_grid.parameters())
+    with torch.no_grad():  # fog everywhere
+        for g in grids:
+            g.fill_(1.0)
+    probe = torch.rand(4096, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    with torch.no_grad():
+        fog0 = float(model.field.density(probe).mean())
+    first = float(model._sparsity())
+    assert first == pytest.approx(float((-torch.expm1(-model.field.density(probe) * model.step_size)).mean()), rel=0.05)
+    opt = torch.optim.Adam(grids, lr=0.1)
+    for _ in range(30):
+        loss = model._sparsity()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        assert float(model.field.density(probe).mean()) < 0.5 * fog0
+        assert float(model._sparsity()) < 0.5 * first
+    out = RenderOutputs(rgb=torch.zeros(2, 3), depth=torch.zeros(2), acc=torch.zeros(2))
+    assert "sparsity" in model.get_losses(out, torch.zeros(2, 3))
+    model.eval()
+    assert "sparsity" not in model.get_losses(out, torch.zeros(2, 3))

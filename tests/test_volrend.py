@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import nerfpipe
-from nerfpipe.functional.volrend import accumulate, composite, render_weights, volrend
+from nerfpipe.functional.volrend import accumulate, binary_entropy, composite, render_weights, volrend
 from reference import render_weights_loop, volrend_loop
 
 # The expected output printed on the CS180 project-4 page (part 2.5) for this exact input.
@@ -114,3 +114,15 @@ def test_public_names_resolve():
     for name in nerfpipe.__all__:
         assert getattr(nerfpipe, name) is not None, name
     assert nerfpipe.volrend is volrend
+
+
+def test_binary_entropy_values_and_finite_gradients():
+    acc = torch.tensor([0.0, 0.2, 0.5, 0.9, 1.0], requires_grad=True)
+    h = binary_entropy(acc)
+    a = acc.detach().clamp(1e-3, 1 - 1e-3).double()
+    torch.testing.assert_close(h.double(), -(a * a.log() + (1 - a) * (1 - a).log()), rtol=1e-5, atol=1e-6)
+    assert float(h[2]) == pytest.approx(torch.log(torch.tensor(2.0)).item(), rel=1e-6)  # a veil costs most
+    assert float(h[0]) < 0.01 and float(h[-1]) < 0.01  # a ray that passes or stops costs (almost) nothing
+    h.sum().backward()
+    assert torch.isfinite(acc.grad).all()
+    assert acc.grad[1] > 0 > acc.grad[3]  # the gradient pushes a thin veil to clear and a thick one to close

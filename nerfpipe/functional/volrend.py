@@ -144,3 +144,10 @@ def volrend(
         deltas = deltas[..., 0]
     weights, _ = render_weights(sig, deltas.expand_as(sig))
     return accumulate(weights, rgbs)
+
+
+def binary_entropy(acc: Float[Tensor, "*bs"], eps: float = 1e-3) -> Float[Tensor, "*bs"]:
+    """``-a log a - (1 - a) log(1 - a)`` of opacities ``acc`` clamped to ``[eps, 1 - eps]`` (finite gradients at
+    0 and 1): zero for rays that stop or pass, largest (``log 2``) for a half-transparent veil."""
+    a = acc.clamp(eps, 1.0 - eps)
+    return -(a * torch.log(a) + (1.0 - a) * torch.log1p(-a))
