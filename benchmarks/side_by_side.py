@@ -42,6 +42,8 @@ class SideBySideConfig:
     eval_views: int = 10
     eval_max_size: "int | None" = None
     """Longer side of validation renders at most (None: full resolution)."""
+    points: "Path | None" = None
+    """Sparse points for an input that lacks them (a run's ``sfm/points``, as the pipeline's ``load`` stage adds them)."""
     track_rays: int = 512
     threads: int = 2
     rays_per_step: int = 4096
@@ -76,6 +78,10 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
 
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
+    if cfg.points is not None:
+        from nerfpipe.data_adapters.colmap import with_points
+
+        scene = with_points(scene, cfg.points)
     tcfg = trainer_config(cfg)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

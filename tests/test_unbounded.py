@@ -5,6 +5,7 @@ and the per-image colour corrections (zero-mean, identity at evaluation)."""
 import pytest
 import torch
 
+from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
@@ -396,11 +397,24 @@ def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_pa
 
 
 def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
-    from nerfpipe.models.fast import SPARSITY_REAL
+    from nerfpipe.data.orbit import look_at
+    from nerfpipe.models.fast import SPARSITY_MAX_VIEWS, SPARSITY_REAL
+    from nerfpipe.training.trainer import all_round
 
-    assert _model().sparsity_weight == SPARSITY_REAL > 0
-    info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100)
-    assert FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True)).sparsity_weight == 0.0
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+
+    def ring(start_deg, end_deg, n=12):
+        a = torch.deg2rad(torch.linspace(start_deg, end_deg, n))
+        eye = torch.stack([4 * torch.cos(a), 4 * torch.sin(a), torch.full_like(a, 2.0)], -1)
+        return Cameras.create(look_at(eye, torch.zeros_like(eye), torch.tensor([0.0, 0.0, 1.0])), 100.0, 100.0, 50.0, 50.0, 100, 100)
+
+    assert all_round(ring(0, 330), box) and not all_round(ring(-60, 60), box)  # an object all round; a facade
+    info = dict(aabb=box, near=0.5, far=10.0, pixels_per_image=100, unbounded=True)
+    weight = lambda **kw: FastConfig(preset="small").setup(SceneInfo(**{**info, "num_images": 20, **kw})).sparsity_weight  # noqa: E731
+    assert weight(all_round=True) == SPARSITY_REAL > 0
+    assert weight(all_round=False) == 0.0  # a facade's in-box surfaces would thin
+    assert weight(all_round=True, num_images=SPARSITY_MAX_VIEWS + 1) == 0.0  # many views hold empty space empty
+    assert weight(all_round=True, unbounded=False, has_alpha=True) == 0.0
     model = _model(sparsity_weight=1.0)
     model.train()
     model.generator = torch.Generator().manual_seed(0)

@@ -54,6 +54,9 @@ class SceneInfo:
     diagonals: near 0 for one camera (0.05 on colmap_mouse, whose COLMAP model has one camera per image),
     large for a collection of photographs from several cameras or zoom settings (1.5 on the Sacre Coeur
     photos)."""
+    all_round: bool = False
+    """The training cameras surround the scene box's centre: seen from above, they leave no azimuth gap wider than
+    :data:`nerfpipe.data.orbit.ARC_GAP` (an object photographed all round, not a facade or a wall)."""
     pixel_footprint: float = 0.0
     """Width of one training pixel at the scene box's centre, in scene units (median over the training
     cameras of their distance to the centre over their focal length; 0: unknown). The finest detail the

@@ -99,10 +99,20 @@ pixel by less than a thousandth of the colour range)."""
 
 
 SPARSITY_REAL = 0.01
-"""``FastConfig.sparsity_weight`` of real captures. Side by side at equal steps (``python -m benchmarks.side_by_side``,
-val PSNR at 400 px): a 23-photo cut of colmap_mouse (3 held-out views), 0 / 0.01 / 0.1: 24.64 / 25.09 / 23.92 dB
-after 300 steps and 24.48 / 24.88 / 24.13 after 600, the occupied share of the box 0.48 / 0.29 / 0.13; the fog
-walls in front of the mouse in orbit views go at 0.01, and 0.1 eats into the mouse."""
+"""``FastConfig.sparsity_weight`` of few-view real captures of an object photographed all round (``SceneInfo.all_round``,
+at most :data:`SPARSITY_MAX_VIEWS` training images).
+Side by side at equal steps (``python -m benchmarks.side_by_side``, val PSNR at 400 px), 0 / 0.01: a 23-photo
+cut of colmap_mouse (20 training images, 3 held-out views) 24.64 / 25.09 dB after 300 steps and 24.48 / 24.88
+after 600, the occupied share of the box 0.48 / 0.29, the fog walls in front of the mouse in orbit views gone (0.1:
+23.92 / 24.13 dB, holes in the mouse). Facades stay at 0: photos_sceaux_castle (10 photos) 13.63 / 13.34 dB after 300
+steps (its lawn and facade thinned); photos_sacre_coeur (8) 15.02 / 15.02 dB with the appearance fitted, 11.12 / 11.66
+with the mean code."""
+
+SPARSITY_MAX_VIEWS = 32
+"""Captures with more training images than this keep ``sparsity_weight`` 0 by default: their views hold empty space
+empty themselves. 0 / 0.01 side by side: colmap_mouse (49 training images) 24.27 / 24.29 dB after 600 steps and
+24.25 / 24.20 after 900; ngp_fox (58, points from the ``sfm`` stage) 25.67 / 25.44 after 300 (a wall in the box
+that the loss thins)."""
 
 
 @dataclass
@@ -221,7 +231,8 @@ class FastConfig:
     """Weight of the mean opacity of one marching step at ``sparsity_points`` random points of the box per
     training step: density decays wherever no photograph needs it, also where no training ray passes and
     the photometric loss cannot see fog, while opaque surfaces (whose opacity saturates) keep theirs
-    (0 = off). Default: :data:`SPARSITY_REAL` for real captures (``SceneInfo.unbounded``), 0 otherwise."""
+    (0 = off). Default: :data:`SPARSITY_REAL` for real captures (``SceneInfo.unbounded``) of an object photographed all
+    round (``SceneInfo.all_round``) in at most :data:`SPARSITY_MAX_VIEWS` training images, 0 otherwise."""
     sparsity_points: int = 4096
     """Random points per step of the sparsity loss."""
     entropy_weight: float = 0.0
@@ -287,7 +298,8 @@ class FastModel(Model):
         self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
         self.register_buffer("object_box", aabb.clone(), persistent=False)
         self._samples_per_ray = 0.0
-        self.sparsity_weight = (SPARSITY_REAL if real else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
+        sparse = real and info.all_round and info.num_images <= SPARSITY_MAX_VIEWS
+        self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
 
     @staticmethod
     def _background_head(code_dim: int = 0) -> torch.nn.Module:
