@@ -412,6 +412,7 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     info = dict(aabb=box, near=0.5, far=10.0, pixels_per_image=100, unbounded=True)
     weight = lambda **kw: FastConfig(preset="small").setup(SceneInfo(**{**info, "num_images": 20, **kw})).sparsity_weight  # noqa: E731
     assert weight(all_round=True) == SPARSITY_REAL > 0
+    assert FastConfig(preset="small").setup(SceneInfo(**info, num_images=20, all_round=True)).stats()["sparsity_weight"] == SPARSITY_REAL  # in metrics.json
     assert weight(all_round=False) == 0.0  # a facade's in-box surfaces would thin
     assert weight(all_round=True, num_images=SPARSITY_MAX_VIEWS + 1) == 0.0  # many views hold empty space empty
     assert weight(all_round=True, unbounded=False, has_alpha=True) == 0.0

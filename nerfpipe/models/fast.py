@@ -618,6 +618,7 @@ class FastModel(Model):
             finest_resolution=float(max(self.field.density_grid.resolutions[-1])),
             finest_voxel=self.field.voxel_size(len(self.field.density_grid.resolutions) - 1),
             hashed_levels=float(sum(h is not None for h in self.field.density_grid.hash_rows)),
+            sparsity_weight=float(self.sparsity_weight),
         )
         return out
 

@@ -48,6 +48,7 @@ LABELS = {
     "checkpoint_mb": ("checkpoint on disk (with optimizer state)", "MB"), "finest_resolution": ("finest grid level", "vertices along the box"),
     "finest_voxel": ("finest voxel", "scene units"), "hashed_levels": ("hashed grid levels", ""),
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
+    "sparsity_weight": ("sparsity loss weight (0: off)", ""),
     "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
     "sight_lines": ("sight lines (camera to sparse point)", ""), "free_space_tau": ("free-space slack before the point", ""),
     "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),
