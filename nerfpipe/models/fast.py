@@ -27,8 +27,8 @@ from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ra
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import axis_resolution
-from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
+from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
 from nerfpipe.util.typing import Float, Tensor
 
