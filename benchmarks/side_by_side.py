@@ -125,7 +125,7 @@ def write_orbit_strips(path: Path, scene, trainers: list, max_size: "int | None"
     from nerfpipe.outputs.render import render_cameras, to_uint8
     from nerfpipe.util.atomic import write_bytes
 
-    cams = path_cameras(scene, "orbit", 4 * views)[:: 4]
+    cams = path_cameras(scene, "orbit", views)
     if max_size:
         cams = cams.capped(max_size)
     rows = []

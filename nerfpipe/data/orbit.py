@@ -49,6 +49,18 @@ def covered_arc(azimuths: Float[Tensor, "num_cameras"], gap: float = ARC_GAP) ->
     return float(a[(widest + 1) % len(a)]), 2 * math.pi - float(gaps[widest])
 
 
+def azimuths(cameras: Cameras, center: Float[Tensor, "3"]) -> Float[Tensor, "num_cameras"]:
+    """Each camera's azimuth about ``center`` (radians, about +z, the world's up)."""
+    offsets = cameras.centers.double().reshape(-1, 3) - center.double()
+    return torch.atan2(offsets[:, 1], offsets[:, 0])
+
+
+def all_round(cameras: Cameras, center: Float[Tensor, "3"]) -> bool:
+    """Whether ``cameras`` surround ``center``: at least three, with no azimuth gap wider than :data:`ARC_GAP`
+    (:func:`covered_arc`; ``SceneInfo.all_round``)."""
+    return len(cameras) >= 3 and covered_arc(azimuths(cameras, center))[1] >= 2 * math.pi
+
+
 def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap: float = ARC_GAP) -> Float[Tensor, "num_frames"]:
     """Azimuths of the path's frames: a full circle when the cameras' ``azimuths`` (radians) leave no gap wider
     than ``gap``, else the arc they cover (:func:`covered_arc`), there and back (eased at its ends, so the loop
@@ -67,7 +79,7 @@ def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: in
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())
     elevation = float(torch.asin((offsets[:, 2] / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
-    angles = orbit_azimuths(torch.atan2(offsets[:, 1], offsets[:, 0]), num_frames)
+    angles = orbit_azimuths(azimuths(reference, center), num_frames)
     ring = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=-1) * math.cos(elevation)
     eye = center.double() + radius * (ring + torch.tensor([0.0, 0.0, math.sin(elevation)], dtype=torch.float64))
     m = look_at(eye, center.double().expand_as(eye), torch.tensor(WORLD_UP, dtype=torch.float64))

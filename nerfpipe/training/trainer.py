@@ -23,7 +23,6 @@ restarts a failed group the trainer resumes from the checkpoint, with the same o
 """
 
 import contextlib
-import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -32,7 +31,7 @@ import torch
 
 from nerfpipe.data.background import backgrounds
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.data.orbit import covered_arc
+from nerfpipe.data.orbit import all_round
 from nerfpipe.data.scene import SceneData, check_images
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
@@ -160,16 +159,8 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneIn
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, all_round=all_round(cams, scene.aabb),
+                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, all_round=all_round(cams, scene.aabb.mean(0)),
                      pixel_footprint=pixel_footprint(cams, scene.aabb))
-
-
-def all_round(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> bool:
-    """Whether ``cams`` surround the centre of ``aabb`` (:attr:`SceneInfo.all_round`)."""
-    if len(cams) < 3:
-        return False
-    offsets = cams.centers.double().reshape(-1, 3) - aabb.double().mean(0)
-    return covered_arc(torch.atan2(offsets[:, 1], offsets[:, 0]))[1] >= 2 * math.pi
 
 
 def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
