@@ -39,6 +39,9 @@ class StepsConfig:
     eval_views: int = 10
     eval_max_size: "int | None" = 400
     """Longer side of validation renders at most (as ``nerfpipe run``'s train stage)."""
+    eval_supersample: int = 2
+    """Rays per pixel side at most in validation renders smaller than their photographs (``TrainerConfig.eval_supersample``;
+    1: one ray per pixel, as the figures before session 15)."""
     track_rays: int = 512
     """Rays per step through sparse points (scenes with tracks)."""
     threads: int = 2
@@ -105,7 +108,7 @@ def trainer_config(cfg):
     from nerfpipe.training.trainer import TrainerConfig
 
     return TrainerConfig(iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, rays_per_step=cfg.rays_per_step, seed=cfg.seed,
-                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays)
+                         eval_max_size=cfg.eval_max_size, track_rays=cfg.track_rays, eval_supersample=cfg.eval_supersample)
 
 
 def append_log(path: "Path | None", rows: "list[dict]") -> None:

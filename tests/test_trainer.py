@@ -124,6 +124,31 @@ def test_ample_time_budget_keeps_the_full_protocol(tiny_scene, tmp_path):
     assert plan["video"]["frames"] == 3 and metrics["video"]["size"] == [SIZE, SIZE]
 
 
+def test_training_leaves_what_the_final_evaluation_needs_within_bounds(tiny_scene, tmp_path):
+    """The training window leaves FINAL_SHARE of the budget, more where the validations' time per ray says the
+    final evaluation of every view needs it, never more than FINAL_MAX_SHARE."""
+    from nerfpipe.training.evaluation import FINAL_MAX_SHARE, FINAL_SHARE, final_eval_need
+
+    t = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path)
+    assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0) and final_eval_need(t) is None  # no validation yet
+    t.seconds_per_pixel = 1.0
+    per_ray = final_eval_need(t)  # 2 views of 8x8 pixels, one ray each, over the final share, with the margin
+    assert per_ray == pytest.approx(1.3 * 2 * 64 / 0.8)
+    t.seconds_per_pixel = 30.0 / per_ray
+    assert t.training_window() == pytest.approx(70.0)
+    t.seconds_per_pixel = 1.0
+    assert t.training_window() == pytest.approx((1 - FINAL_MAX_SHARE) * 100.0)
+    t.seconds_per_pixel = 1e-9
+    assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
+
+
+@pytest.mark.parametrize("budget, supersample", [(3600.0, 2), (0.0, 1)])
+def test_final_evaluation_supersamples_small_views_when_every_view_fits(tiny_scene, tmp_path, budget, supersample):
+    t = Trainer(tcfg(iters=2, time_budget=budget, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path)
+    plan = t.train()["budget_plan"]["final_eval"]
+    assert plan["supersample"] == supersample and plan["size"] == [SIZE // 2, SIZE // 2]
+
+
 def test_progress_eta_under_a_time_budget_is_the_time_to_the_end_of_the_run():
     from nerfpipe.util.progress import TrainProgress
 

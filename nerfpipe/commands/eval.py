@@ -10,6 +10,7 @@ def eval_run(
     views: int = 0,
     scale: float = 1.0,
     max_size: "int | None" = None,
+    supersample: int = 2,
     chunk: int = 4096,
     device: str = "auto",
     json: bool = False,
@@ -23,6 +24,8 @@ def eval_run(
         views: the first this many views of the evaluation split (0: all).
         scale: resolution factor of the renders (ground truth is area-resized to match).
         max_size: longer side of the renders in pixels at most (none: full size).
+        supersample: rays per pixel side at most in renders smaller than their photographs, each pixel the mean over its
+            area (1: one ray through its centre; full-size renders always take one).
         chunk: rays per forward pass (bounds memory).
         device: torch device (auto: CUDA when present, else CPU; printed first, or named in the JSON).
         json: print the result as JSON only.
@@ -38,7 +41,8 @@ def eval_run(
     from nerfpipe.util.errors import refuse_unless, require
 
     refuse_unless([("views", views >= 0, "0 or more", views), ("scale", 0 < scale <= 16, "a positive factor (at most 16)", scale),
-                   ("max_size", max_size is None or max_size >= 1, "at least 1", max_size), ("chunk", chunk >= 1, "at least 1", chunk)])
+                   ("max_size", max_size is None or max_size >= 1, "at least 1", max_size),
+                   ("supersample", 1 <= supersample <= 8, "1 to 8", supersample), ("chunk", chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
     device = check_device(device)
@@ -50,9 +54,10 @@ def eval_run(
     bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
     lpips, lpips_note = lpips_scorer(device)
     start = time.perf_counter()
-    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True)
+    scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True,
+                         supersample=supersample)
     result = {
-        "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}),
+        "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}), "supersample": supersample,
         "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
         "psnr_appearance_fitted": _mean(scores["appearance_fitted_psnr"]) if scores["appearance_fitted_psnr"] else None,
         "lpips": _mean(scores["lpips"]) if lpips is not None else None, "lpips_note": lpips_note,

@@ -52,7 +52,7 @@ def _render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], 
 
 @torch.no_grad()
 def render_cameras(
-    model: Model, cameras: Cameras, chunk: int = 4096, background: "Float[Tensor, '3'] | None" = None
+    model: Model, cameras: Cameras, chunk: int = 4096, background: "Float[Tensor, '3'] | None" = None, supersample: int = 1
 ) -> "list[RenderedView]":
     """Render every camera of a flat batch (sizes may differ), model in eval mode.
 
@@ -61,6 +61,10 @@ def render_cameras(
         cameras: ``[num_cams]`` cameras on the model's device.
         chunk: rays per forward pass (bounds memory).
         background: colour behind the volume (default black).
+        supersample: ``k``: each pixel is the mean of ``k x k`` rays spread evenly over its area (a camera's
+            pixel integrates its area; one ray through its centre aliases detail finer than the pixel, as a
+            field learnt from larger photographs has: :func:`supersample_factor`). The stop depth is the mean
+            over the rays that stop (NaN where none does).
     """
     background = torch.zeros(3) if background is None else background
     was_training = model.training
@@ -68,14 +72,50 @@ def render_cameras(
     views = []
     try:
         for i in range(len(cameras)):
-            rays = camera_rays(cameras, i)
+            if supersample > 1:
+                cam = cameras[i : i + 1]
+                rays = camera_rays(resize_cameras(cam, int(cam.width[0]) * supersample, int(cam.height[0]) * supersample), 0)
+            else:
+                rays = camera_rays(cameras, i)
             h, w = rays.shape
             rgb, depth, acc, stop = _render_rays(model, rays.reshape(h * w), background, chunk)
-            stop = None if stop is None else stop.reshape(h, w)
-            views.append(RenderedView(rgb.reshape(h, w, 3).clamp(0, 1), depth.reshape(h, w), acc.reshape(h, w), stop))
+            view = RenderedView(rgb.reshape(h, w, 3).clamp(0, 1), depth.reshape(h, w), acc.reshape(h, w), None if stop is None else stop.reshape(h, w))
+            views.append(view if supersample == 1 else _pooled(view, supersample))
     finally:
         model.train(was_training)
     return views
+
+
+def _pooled(view: RenderedView, k: int) -> RenderedView:
+    """Means over ``k x k`` blocks of a view rendered at ``k`` times the size (stop depth: over the rays that stop)."""
+    h, w = view.acc.shape[0] // k, view.acc.shape[1] // k
+
+    def pool(x: Tensor) -> Tensor:
+        return x.reshape(h, k, w, k, *x.shape[2:]).mean(dim=(1, 3))
+
+    stop = None
+    if view.stop_depth is not None:
+        valid = ~torch.isnan(view.stop_depth)
+        count = pool(valid.to(view.acc.dtype))
+        stop = pool(view.stop_depth.nan_to_num(0.0)) / count.clamp(min=1e-12)
+        stop = torch.where(count > 0, stop, torch.full_like(stop, float("nan")))
+    return RenderedView(pool(view.rgb), pool(view.depth), pool(view.acc), stop)
+
+
+MAX_SUPERSAMPLE = 2
+"""Rays per pixel side at most when renders are coarser than the photographs (:func:`supersample_factor`)."""
+
+
+def supersample_factor(render_size: int, source_size: int, limit: int = MAX_SUPERSAMPLE) -> int:
+    """Rays per pixel side for a render whose longer side is ``render_size`` of a view whose photographs had
+    ``source_size``: the whole number of photograph pixels one rendered pixel spans, at most ``limit`` (1 when the
+    render is at least half the photographs' size).
+
+    Example:
+        >>> supersample_factor(400, 1920), supersample_factor(400, 400), supersample_factor(300, 500)
+        (2, 1, 1)
+    """
+    return int(max(1, min(limit, source_size // max(render_size, 1))))
 
 
 def capped_size(width: int, height: int, scale: float, max_size: "int | None") -> "tuple[int, int]":
@@ -140,4 +180,4 @@ def to_uint8(image: Float[Tensor, "*bs"]) -> "object":
     return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
-__all__ = ["FramePlan", "RenderedView", "plan_frames", "render_cameras", "render_rays", "resize_cameras", "to_uint8"]
+__all__ = ["FramePlan", "RenderedView", "plan_frames", "render_cameras", "render_rays", "resize_cameras", "supersample_factor", "to_uint8"]

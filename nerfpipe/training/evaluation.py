@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from nerfpipe.data.background import background_colors, composite_pixels
 from nerfpipe.data.rays import camera_rays
 from nerfpipe.functional.metrics import psnr_from_mse
-from nerfpipe.outputs.render import FramePlan, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, to_uint8
+from nerfpipe.outputs.render import FramePlan, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, supersample_factor, to_uint8
 from nerfpipe.training.checkpoint import CHECKPOINT
 from nerfpipe.training.runs import write_json
 from nerfpipe.util.errors import require
@@ -92,6 +92,11 @@ that does not fit)."""
 VALIDATION_SHARE = 0.1
 """Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
 of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
+FINAL_MAX_SHARE = 0.4
+"""Under a wall-clock budget, the share of it kept for what follows training at most, however long the final
+evaluation would take (:func:`final_eval_need`; the views shrink or fewer are scored beyond it)."""
+FINAL_MARGIN = 1.3
+"""Safety factor on the final evaluation's estimated time (:func:`final_eval_need`)."""
 PROBE = 4
 """Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side."""
 ENCODE_SHARE = 0.2
@@ -120,15 +125,16 @@ def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int
 
 
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
-                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False) -> dict:
+                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False, supersample: int = 1) -> dict:
     """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
     with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
 
     Returns the per-view ``psnr``, ``ssim``, ``fitted_psnr`` lists, the render ``seconds`` and ``pixels``
-    (for the time one pixel takes), with ``keep_first`` the first rendered view as ``first``, and with an
+    (the rays rendered, for the time one ray takes), with ``keep_first`` the first rendered view as ``first``, and with an
     ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr. With
     ``fit_appearance``, models with per-image appearance also give ``appearance_fitted_psnr``
-    (:func:`appearance_fitted_psnr`; its time is not in ``seconds``).
+    (:func:`appearance_fitted_psnr`; its time is not in ``seconds``). ``supersample``: rays per pixel side at most
+    for views smaller than their photographs (:func:`view_supersample`).
     """
     out = {"psnr": [], "ssim": [], "fitted_psnr": [], "appearance_fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
     cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
@@ -142,9 +148,9 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
             break
         start = time.perf_counter()
         cam = resize_cameras(cams[i : i + 1], w, h).to(device)
-        view = render_cameras(model, cam, chunk, background)[0]
+        view = render_cameras(model, cam, chunk, background, view_supersample(cams, i, (w, h), supersample))[0]
         out["seconds"] += time.perf_counter() - start
-        out["pixels"] += w * h
+        out["pixels"] += w * h * view_supersample(cams, i, (w, h), supersample) ** 2
         gt = ground_truth(scene, idx[i], background, (w, h))
         p, s = score(view.rgb, gt)
         out["psnr"].append(p)
@@ -160,6 +166,12 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         if keep_first and i == 0:
             out["first"] = view
     return out
+
+
+def view_supersample(cams, i: int, size: "tuple[int, int]", limit: int) -> int:
+    """Rays per pixel side for camera ``i`` of ``cams`` rendered at ``size`` (w, h) and scored against its photograph's
+    area mean (:func:`~nerfpipe.outputs.render.supersample_factor`, at most ``limit``)."""
+    return supersample_factor(max(size), max(int(cams.width[i]), int(cams.height[i])), limit)
 
 
 def eval_sizes(scene, idx: "list[int]", scale: float, max_size: "int | None") -> "list[tuple[int, int]]":
@@ -188,16 +200,18 @@ def lpips_scorer(device: str):
     return lambda a, b: float(net(a.permute(2, 0, 1)[None] * 2 - 1, b.permute(2, 0, 1)[None].to(a) * 2 - 1)), None
 
 
-def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False) -> "tuple[float, float]":
+def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False,
+             supersample: "int | None" = None) -> "tuple[float, float]":
     """Mean (PSNR, SSIM) over ``num_views`` val views (0: all) at ``scale`` of the configured size (those begun
-    before ``deadline``); logs it, keeps a snapshot of view 0 and the time one rendered pixel took
-    (``trainer.seconds_per_pixel``). The ``final`` one also fits per-image appearance to the left halves
-    (``trainer.last_appearance_fitted_psnr``, None without)."""
+    before ``deadline``), with ``supersample`` rays per pixel side at most (None: ``eval_supersample``); logs it, keeps
+    a snapshot of view 0 and the time one rendered ray took (``trainer.seconds_per_pixel``). The ``final`` one also fits
+    per-image appearance to the left halves (``trainer.last_appearance_fitted_psnr``, None without)."""
     scene, cfg = trainer.scene, trainer.cfg
     idx = eval_views(scene, num_views)
     bg = background_colors(trainer.eval_bg, 1)[0]
     scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True,
-                         deadline=deadline, fit_appearance=final)
+                         deadline=deadline, fit_appearance=final,
+                         supersample=cfg.eval_supersample if supersample is None else supersample)
     fitted = scores["appearance_fitted_psnr"]
     trainer.last_appearance_fitted_psnr = _mean(fitted) if fitted else None
     idx = idx[: len(scores["psnr"])]
@@ -237,22 +251,46 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     if trainer.wall_left() is None:
         return (*validate(trainer, cfg.final_eval_views, final=True), len(idx))
     start = time.perf_counter()
-    share = EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE  # the figures and videos come after
-    allowed = share * trainer.wall_left()
+    allowed = _final_share(cfg) * trainer.wall_left()
     (w, h), = _eval_sizes(scene, idx[:1], cfg)
     pw, ph = max(1, w // PROBE), max(1, h // PROBE)  # the trained model's speed (per-view costs make it an overestimate)
-    probe = resize_cameras(scene.cameras[torch.tensor(idx[:1], dtype=torch.long)], pw, ph).to(cfg.device)
+    first = scene.cameras[torch.tensor(idx[:1], dtype=torch.long)]
+    probe = resize_cameras(first, pw, ph).to(cfg.device)
     probe_start = time.perf_counter()
     render_cameras(trainer.model, probe, cfg.chunk, background_colors(trainer.eval_bg, 1)[0])
     per_view = (time.perf_counter() - probe_start) / (pw * ph) * w * h
+    supersample = 1  # the most rays per pixel with which every view fits at full size, else one
+    for k in range(view_supersample(first, 0, (w, h), cfg.eval_supersample), 1, -1):
+        if len(idx) * per_view * k**2 <= allowed - (time.perf_counter() - start):
+            supersample, per_view = k, per_view * k**2
+            break
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
     fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
-    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True)
+    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
+                          supersample=supersample)
     views = trainer.history["val"][-1][-1]
     (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
-    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h],
+    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h], "supersample": supersample,
                           "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
     return psnr, ssim, views
+
+
+def _final_share(cfg) -> float:
+    """Of the time left when training stops, the share the final evaluation may take (the figures and videos come after)."""
+    return EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE
+
+
+def final_eval_need(trainer) -> "float | None":
+    """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
+    per pixel (from the latest validation's time per ray, :data:`FINAL_MARGIN` times over; None before one).
+    Supersampling is not reserved for: it is used where it fits in what is left (on colmap_mouse under
+    ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays cut training from 878 to 600 steps, and 2 x 2
+    still did not fit the 40 % kept)."""
+    if trainer.seconds_per_pixel is None:
+        return None
+    cfg, scene = trainer.cfg, trainer.scene
+    rays = sum(w * h for w, h in _eval_sizes(scene, eval_views(scene, cfg.final_eval_views), cfg))
+    return FINAL_MARGIN * trainer.seconds_per_pixel * rays / _final_share(cfg)
 
 
 def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
@@ -336,7 +374,8 @@ def finish(trainer) -> dict:
     if cfg.video_frames and cfg.write_outputs:
         _video(trainer, metrics, plan)
     if cfg.time_budget is not None:
-        metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE, "training_stopped_at": trainer.training_stopped_at,
+        metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE if trainer.stopping_window is None or not cfg.time_budget else 1 - trainer.stopping_window / cfg.time_budget,
+                                  "training_stopped_at": trainer.training_stopped_at,
                                   "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
     write_json(out / "metrics.json", metrics)
     write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})
