@@ -126,7 +126,7 @@ def test_ample_time_budget_keeps_the_full_protocol(tiny_scene, tmp_path):
 
 def test_training_leaves_what_the_final_evaluation_needs_within_bounds(tiny_scene, tmp_path):
     """The training window leaves FINAL_SHARE of the budget, more where the validations' time per ray says the
-    final evaluation of every view needs it, never more than FINAL_MAX_SHARE."""
+    final evaluation of every view needs it where that is at most FINAL_MAX_SHARE."""
     from nerfpipe.training.evaluation import FINAL_MAX_SHARE, FINAL_SHARE, final_eval_need
 
     t = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path)
@@ -136,8 +136,10 @@ def test_training_leaves_what_the_final_evaluation_needs_within_bounds(tiny_scen
     assert per_ray == pytest.approx(1.3 * 2 * 64 / 0.8)
     t.seconds_per_pixel = 30.0 / per_ray
     assert t.training_window() == pytest.approx(70.0)
-    t.seconds_per_pixel = 1.0
+    t.seconds_per_pixel = 40.0 / per_ray
     assert t.training_window() == pytest.approx((1 - FINAL_MAX_SHARE) * 100.0)
+    t.seconds_per_pixel = 41.0 / per_ray  # no share up to FINAL_MAX_SHARE would score every view: the usual share
+    assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
     t.seconds_per_pixel = 1e-9
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
 

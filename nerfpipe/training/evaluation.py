@@ -93,8 +93,9 @@ VALIDATION_SHARE = 0.1
 """Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
 of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
 FINAL_MAX_SHARE = 0.4
-"""Under a wall-clock budget, the share of it kept for what follows training at most, however long the final
-evaluation would take (:func:`final_eval_need`; the views shrink or fewer are scored beyond it)."""
+"""Under a wall-clock budget, the share of it kept for what follows training at most: where the final evaluation of
+every view (:func:`final_eval_need`) needs more than :data:`FINAL_SHARE` and at most this, training leaves it that;
+where it needs more, no share would score every view, and :data:`FINAL_SHARE` is left (fewer or smaller views)."""
 FINAL_MARGIN = 1.3
 """Safety factor on the final evaluation's estimated time (:func:`final_eval_need`)."""
 PROBE = 4

@@ -68,8 +68,8 @@ class TrainerConfig:
     """Wall-clock seconds for the whole run, end to end: from when the trainer is made (or the ``started`` it is
     given: ``nerfpipe train`` counts from the process's start), training, validations, the final evaluation,
     figures and videos. Training stops when :data:`~nerfpipe.training.evaluation.FINAL_SHARE` of it is
-    left (more, up to ``FINAL_MAX_SHARE``, where the validations' time per ray says the final evaluation needs
-    it); the final evaluation's views, size and supersampling and the videos' frames and size are then chosen
+    left (more, up to ``FINAL_MAX_SHARE``, where the validations' time per ray says the final evaluation of every
+    view needs it); the final evaluation's views, size and supersampling and the videos' frames and size are then chosen
     to fit (``budget_plan`` in metrics.json). ``nerfpipe eval RUN`` scores the full protocol afterwards."""
     clock: str = "wall"
     """What ``train_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
@@ -366,7 +366,8 @@ class Trainer:
     def training_window(self) -> "float | None":
         """Wall seconds after the start at which training stops under a ``time_budget`` (the rest is the final phase's:
         :data:`~nerfpipe.training.evaluation.FINAL_SHARE` of it, or what the final evaluation of every view is
-        estimated to need (:func:`~nerfpipe.training.evaluation.final_eval_need`), up to ``FINAL_MAX_SHARE``)."""
+        estimated to need (:func:`~nerfpipe.training.evaluation.final_eval_need`) where that is at most
+        ``FINAL_MAX_SHARE`` of it; beyond, the final evaluation scores fewer or smaller views in the usual share)."""
         from nerfpipe.training.evaluation import FINAL_MAX_SHARE, FINAL_SHARE, final_eval_need
 
         budget = self.cfg.time_budget
@@ -376,8 +377,8 @@ class Trainer:
         if not self.world.active:  # torchrun's ranks must agree on the window: the fixed share there
             if self._final_need is None or self._final_need[0] is not self.seconds_per_pixel:
                 self._final_need = (self.seconds_per_pixel, final_eval_need(self))
-            if self._final_need[1] is not None:
-                reserve = min(FINAL_MAX_SHARE * budget, max(reserve, self._final_need[1]))
+            if self._final_need[1] is not None and self._final_need[1] <= FINAL_MAX_SHARE * budget:  # else no share fits every view
+                reserve = max(reserve, self._final_need[1])
         return budget - reserve
 
     def done(self) -> bool:
