@@ -2,6 +2,8 @@
 the field behind the box (renders, learns, leaves the box's own rendering alone where it is opaque),
 and the per-image colour corrections (zero-mean, identity at evaluation)."""
 
+import math
+
 import pytest
 import torch
 
@@ -397,8 +399,8 @@ def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_pa
 
 
 def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
-    from nerfpipe.data.orbit import all_round, look_at
-    from nerfpipe.models.fast import SPARSITY_MAX_VIEWS, SPARSITY_REAL
+    from nerfpipe.data.orbit import camera_arc, look_at
+    from nerfpipe.models.fast import SPARSITY_MAX_VIEWS, SPARSITY_MIN_ARC, SPARSITY_REAL
 
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
 
@@ -407,14 +409,16 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
         eye = torch.stack([4 * torch.cos(a), 4 * torch.sin(a), torch.full_like(a, 2.0)], -1)
         return Cameras.create(look_at(eye, torch.zeros_like(eye), torch.tensor([0.0, 0.0, 1.0])), 100.0, 100.0, 50.0, 50.0, 100, 100)
 
-    assert all_round(ring(0, 330), box.mean(0)) and not all_round(ring(-60, 60), box.mean(0))  # an object all round; a facade
+    assert camera_arc(ring(0, 330), box.mean(0)) == pytest.approx(2 * math.pi)  # an object all round
+    assert camera_arc(ring(-60, 60), box.mean(0)) == pytest.approx(math.radians(120))  # a half-open arc: from the first to the last
+    assert camera_arc(ring(-60, 60)[:2], box.mean(0)) == 0.0
     info = dict(aabb=box, near=0.5, far=10.0, pixels_per_image=100, unbounded=True)
     weight = lambda **kw: FastConfig(preset="small").setup(SceneInfo(**{**info, "num_images": 20, **kw})).sparsity_weight  # noqa: E731
-    assert weight(all_round=True) == SPARSITY_REAL > 0
-    assert FastConfig(preset="small").setup(SceneInfo(**info, num_images=20, all_round=True)).stats()["sparsity_weight"] == SPARSITY_REAL  # in metrics.json
-    assert weight(all_round=False) == 0.0  # a facade's in-box surfaces would thin
-    assert weight(all_round=True, num_images=SPARSITY_MAX_VIEWS + 1) == 0.0  # many views hold empty space empty
-    assert weight(all_round=True, unbounded=False, has_alpha=True) == 0.0
+    assert weight(arc=2 * math.pi) == weight(arc=SPARSITY_MIN_ARC) == SPARSITY_REAL > 0  # all round; one side of an object
+    assert FastConfig(preset="small").setup(SceneInfo(**info, num_images=20, arc=2 * math.pi)).stats()["sparsity_weight"] == SPARSITY_REAL  # in metrics.json
+    assert weight(arc=math.radians(63)) == 0.0  # a facade's in-box surfaces would thin
+    assert weight(arc=2 * math.pi, num_images=SPARSITY_MAX_VIEWS + 1) == 0.0  # many views hold empty space empty
+    assert weight(arc=2 * math.pi, unbounded=False, has_alpha=True) == 0.0
     model = _model(sparsity_weight=1.0)
     model.train()
     model.generator = torch.Generator().manual_seed(0)

@@ -55,10 +55,10 @@ def azimuths(cameras: Cameras, center: Float[Tensor, "3"]) -> Float[Tensor, "num
     return torch.atan2(offsets[:, 1], offsets[:, 0])
 
 
-def all_round(cameras: Cameras, center: Float[Tensor, "3"]) -> bool:
-    """Whether ``cameras`` surround ``center``: at least three, with no azimuth gap wider than :data:`ARC_GAP`
-    (:func:`covered_arc`; ``SceneInfo.all_round``)."""
-    return len(cameras) >= 3 and covered_arc(azimuths(cameras, center))[1] >= 2 * math.pi
+def camera_arc(cameras: Cameras, center: Float[Tensor, "3"]) -> float:
+    """The azimuth arc (radians) ``cameras`` cover about ``center`` (:func:`covered_arc`; ``SceneInfo.arc``): 2 pi
+    when they surround it with no gap wider than :data:`ARC_GAP`, 0 for fewer than three."""
+    return covered_arc(azimuths(cameras, center))[1] if len(cameras) >= 3 else 0.0
 
 
 def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap: float = ARC_GAP) -> Float[Tensor, "num_frames"]:

@@ -54,9 +54,11 @@ class SceneInfo:
     diagonals: near 0 for one camera (0.05 on colmap_mouse, whose COLMAP model has one camera per image),
     large for a collection of photographs from several cameras or zoom settings (1.5 on the Sacre Coeur
     photos)."""
-    all_round: bool = False
-    """The training cameras surround the scene box's centre: seen from above, they leave no azimuth gap wider than
-    :data:`nerfpipe.data.orbit.ARC_GAP` (an object photographed all round, not a facade or a wall)."""
+    arc: float = 0.0
+    """The azimuth arc (radians) the training cameras cover about the scene box's centre, seen from above
+    (:func:`nerfpipe.data.orbit.camera_arc`): 2 pi for an object photographed all round (no gap wider than
+    :data:`nerfpipe.data.orbit.ARC_GAP`), about 2.9 for 21 of colmap_mouse's photographs on one side of it,
+    1.1 for the Sceaux castle's facade photographs, 0.75 for the Sacre Coeur collection."""
     pixel_footprint: float = 0.0
     """Width of one training pixel at the scene box's centre, in scene units (median over the training
     cameras of their distance to the centre over their focal length; 0: unknown). The finest detail the

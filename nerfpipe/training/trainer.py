@@ -31,7 +31,7 @@ import torch
 
 from nerfpipe.data.background import backgrounds
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.data.orbit import all_round
+from nerfpipe.data.orbit import camera_arc
 from nerfpipe.data.scene import SceneData, check_images
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
@@ -168,7 +168,7 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneIn
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, all_round=all_round(cams, scene.aabb.mean(0)),
+                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, arc=camera_arc(cams, scene.aabb.mean(0)),
                      pixel_footprint=pixel_footprint(cams, scene.aabb))
 
 
