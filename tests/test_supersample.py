@@ -69,3 +69,19 @@ def test_supersampled_render_is_the_mean_of_its_sub_pixel_rays(k, device):
 def test_supersample_factor_counts_whole_photograph_pixels_per_rendered_pixel():
     assert supersample_factor(400, 1920) == 2 and supersample_factor(400, 1920, limit=8) == 4
     assert supersample_factor(800, 800) == 1 and supersample_factor(801, 1600) == 1 and supersample_factor(10, 5) == 1
+
+
+def test_render_sequence_supersamples_every_frame_and_records_it():
+    from nerfpipe.data.background import background_colors
+    from nerfpipe.outputs.novel_views import RenderConfig, path_cameras, render_sequence
+    from nerfpipe.outputs.render import resize_cameras
+    from tests.test_mesh_command import sphere_scene
+
+    model, scene = StripesModel(), sphere_scene(n=6, size=24)
+    cfg = RenderConfig(path="orbit", frames=3, size="20x14", depth=False, supersample=2)
+    views, info = render_sequence(model, scene, cfg, background_colors("black", 1)[0], "cpu")
+    cams = resize_cameras(path_cameras(scene, cfg, 3), 20, 14)
+    assert info["supersample"] == 2 and len(views) == 3
+    for i, view in enumerate(views):
+        torch.testing.assert_close(view.rgb, render_cameras(model, cams[i : i + 1], supersample=2)[0].rgb)
+        assert not torch.allclose(view.rgb, render_cameras(model, cams[i : i + 1])[0].rgb, atol=0.02)
