@@ -182,6 +182,16 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     assert json.loads(capsys.readouterr().out)["per_view"][0] == result["per_view"][0]
     assert (pipeline_layout / "train" / "eval.json").is_file()
 
+    half = SIZE // 2  # below the photographs' size: 2x2 rays per pixel by default, one with --supersample 1
+    scores = {}
+    for k in (1, 2):
+        assert main(["eval", str(pipeline_layout), "--max-size", str(half), "--supersample", str(k), "--json"]) == 0
+        scores[k] = json.loads(capsys.readouterr().out)
+        assert scores[k]["supersample"] == k and scores[k]["sizes"] == [f"{half}x{half}"]
+    assert scores[1]["psnr"] != scores[2]["psnr"]
+    assert main(["eval", str(pipeline_layout), "--supersample", "0"]) == 2  # one line naming the parameter
+    assert "supersample" in capsys.readouterr().err
+
 
 def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"
