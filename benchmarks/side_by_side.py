@@ -41,10 +41,10 @@ class SideBySideConfig:
     """Steps one variant trains before the next takes its turn."""
     eval_views: int = 10
     eval_max_size: "int | None" = None
+    """Longer side of validation renders at most (None: full resolution)."""
     eval_supersample: int = 2
     """Rays per pixel side at most in validation renders smaller than their photographs (``TrainerConfig.eval_supersample``;
     1: one ray per pixel, as the figures before session 15)."""
-    """Longer side of validation renders at most (None: full resolution)."""
     points: "Path | None" = None
     """Sparse points for an input that lacks them (a run's ``sfm/points``, as the pipeline's ``load`` stage adds them)."""
     track_rays: int = 512

@@ -149,9 +149,10 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
             break
         start = time.perf_counter()
         cam = resize_cameras(cams[i : i + 1], w, h).to(device)
-        view = render_cameras(model, cam, chunk, background, view_supersample(cams, i, (w, h), supersample))[0]
+        k = view_supersample(cams, i, (w, h), supersample)
+        view = render_cameras(model, cam, chunk, background, k)[0]
         out["seconds"] += time.perf_counter() - start
-        out["pixels"] += w * h * view_supersample(cams, i, (w, h), supersample) ** 2
+        out["pixels"] += w * h * k**2
         gt = ground_truth(scene, idx[i], background, (w, h))
         p, s = score(view.rgb, gt)
         out["psnr"].append(p)
@@ -290,8 +291,9 @@ def final_eval_need(trainer) -> "float | None":
     if trainer.seconds_per_pixel is None:
         return None
     cfg, scene = trainer.cfg, trainer.scene
-    rays = sum(w * h for w, h in _eval_sizes(scene, eval_views(scene, cfg.final_eval_views), cfg))
-    return FINAL_MARGIN * trainer.seconds_per_pixel * rays / _final_share(cfg)
+    if trainer.final_eval_rays is None:  # fixed by the scene and the configuration: counted once
+        trainer.final_eval_rays = sum(w * h for w, h in _eval_sizes(scene, eval_views(scene, cfg.final_eval_views), cfg))
+    return FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays / _final_share(cfg)
 
 
 def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:

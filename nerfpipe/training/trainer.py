@@ -239,7 +239,7 @@ class Trainer:
         self._logged_at = 0.0  # perf_counter of the latest flush_losses
         self.hooks = self.model.callbacks()
         self.seconds_per_pixel: "float | None" = None  # per ray of the latest validation render
-        self._final_need: "tuple | None" = None  # (seconds_per_pixel, final_eval_need) of the latest validation
+        self.final_eval_rays: "int | None" = None  # rays of the final evaluation of every view, one per pixel (counted once)
         self.stopping_window: "float | None" = None  # the training window when training stopped
         self.validation_seconds = 0.0  # rendering for validations so far
         self.training_stopped_at: "float | None" = None  # wall seconds after start
@@ -374,11 +374,9 @@ class Trainer:
         if budget is None:
             return None
         reserve = FINAL_SHARE * budget
-        if not self.world.active:  # torchrun's ranks must agree on the window: the fixed share there
-            if self._final_need is None or self._final_need[0] is not self.seconds_per_pixel:
-                self._final_need = (self.seconds_per_pixel, final_eval_need(self))
-            if self._final_need[1] is not None and self._final_need[1] <= FINAL_MAX_SHARE * budget:  # else no share fits every view
-                reserve = max(reserve, self._final_need[1])
+        need = None if self.world.active else final_eval_need(self)  # torchrun's ranks must agree on the window: the fixed share there
+        if need is not None and need <= FINAL_MAX_SHARE * budget:  # else no share fits every view
+            reserve = max(reserve, need)
         return budget - reserve
 
     def done(self) -> bool:
