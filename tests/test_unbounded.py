@@ -189,6 +189,33 @@ def test_depth_loss_rewards_stopping_at_the_point_and_punishes_fog():
     w = torch.cat([torch.zeros(100), torch.zeros(100), torch.zeros(100)])
     extras = dict(weights=w, t_mids=t.repeat(3), ray_indices=torch.arange(3).repeat_interleave(100), t_exit=torch.full((3,), 4.0))
     assert float(model._depth_loss(extras, behind_box)) == 0.5  # ray 0 must stop at 3 and does not; ray 1 is free
+    none = torch.full((3,), float("nan"))
+    assert float(model._depth_loss(extras, none)) == 0.0  # no ray with a point: nothing to ask
+
+
+def test_depth_loss_and_the_field_behind_the_box_read_nothing_back_from_the_device():
+    """Issue 13: the real-capture terms of a training step add no host sync (no branch on a tensor, no boolean
+    index, no box size read back every step), forward and backward."""
+    from nerfpipe.training.opcount import DispatchCounter
+
+    model = _model()
+    model.train()
+    t = torch.linspace(0.5, 5.0, 50)
+    w = torch.full((150,), 0.01, requires_grad=True)
+    extras = dict(weights=w, t_mids=t.repeat(3), ray_indices=torch.arange(3).repeat_interleave(50), t_exit=torch.full((3,), 4.0))
+    n = 8
+    origins = torch.tensor([[0.0, 0.0, -3.0]]).expand(n, 3)
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
+    target = torch.tensor([3.0, 4.5, float("nan")])
+
+    def behind():
+        return model.behind(origins, directions, torch.zeros(n, 16), torch.full((n,), 4.0), torch.zeros(n, 3), codes=torch.zeros(n, model.behind.code_dim))
+
+    behind()  # the grid's constants are built on the first call (then cached): the steady state is counted
+    with DispatchCounter() as c:
+        model._depth_loss(extras, target).backward()
+        behind().rgb.sum().backward()
+    assert c.syncs == 0, dict(c.sync_ops)
 
 
 def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():

@@ -132,6 +132,8 @@ class BackgroundField(nn.Module):
         self.code_dim = code_dim
         self.cfg = cfg
         self.register_buffer("aabb", aabb.detach().clone().float())
+        self.t_far = cfg.far_factor * float((aabb[1] - aabb[0]).norm())
+        """Where the samples end (``far_factor`` box diagonals), read once (not from the device every step)."""
         resolutions = [(n, n, n) for n in cfg.levels]
         self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0)
         self.fine = bool(cfg.fine_levels)
@@ -150,10 +152,6 @@ class BackgroundField(nn.Module):
         """The grids' tables (their own learning rate)."""
         grids = [self.density_grid, self.feature_grid] + ([self.fine_density_grid] if self.fine else [])
         return [p for g in grids for p in g.parameters()]
-
-    @property
-    def t_far(self) -> float:
-        return self.cfg.far_factor * float((self.aabb[1] - self.aabb[0]).norm())
 
     def _corners(self, points: Float[Tensor, "num_points 3"], grid: "DenseGridEncoding | None" = None) -> list:
         grid = self.density_grid if grid is None else grid

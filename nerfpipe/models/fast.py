@@ -306,6 +306,8 @@ class FastModel(Model):
         use_behind = real if cfg.background_field is None else cfg.background_field
         self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
         self.register_buffer("object_box", aabb.clone(), persistent=False)
+        self._object_diagonal = float((aabb[1] - aabb[0]).norm())
+        """The object region's diagonal, read once (not from the device every step)."""
         self._samples_per_ray = 0.0
         sparse = real and info.arc >= SPARSITY_MIN_ARC and info.num_images <= SPARSITY_MAX_VIEWS
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
@@ -534,19 +536,17 @@ class FastModel(Model):
     def _depth_loss(self, extras: dict, target: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
         """Mean over rays with a target of: the opacity in front of the observed point, plus, when the
         point lies in the object region, the share of the ray not stopped within the tolerance of it."""
-        has = ~torch.isnan(target)
-        if not bool(has.any()):
-            return target.new_zeros(())
+        has = ~torch.isnan(target)  # (masked sums, not a branch or a boolean index: no host sync)
         w, t, ri = extras["weights"], extras["t_mids"], extras["ray_indices"]
         d = target.nan_to_num(0.0)
-        eps = self.cfg.depth_tolerance * float((self.object_box[1] - self.object_box[0]).norm())
+        eps = self.cfg.depth_tolerance * self._object_diagonal
         d_s = d[ri]
         front = w * (t < d_s - eps)
         window = w * ((t - d_s).abs() <= eps)
         sums = accumulate_packed(torch.stack([front, window], dim=-1), ri, len(target))
         inside = (d < extras["t_exit"]).to(w.dtype)
         per_ray = sums[:, 0] + inside * (1.0 - sums[:, 1])
-        return per_ray[has].mean()
+        return torch.where(has, per_ray, 0.0).sum() / has.sum().clamp(min=1)
 
     # ------------------------------------------------------------------ training hooks
     def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":
