@@ -11,6 +11,7 @@ from nerfpipe.functional.distortion import (
     distort,
     distort_fisheye,
     distort_opencv,
+    models_present,
     undistort,
     undistort_fisheye,
     undistort_opencv,
@@ -96,6 +97,18 @@ def test_dispatch_mixed_models_and_none():
     torch.testing.assert_close(out[cv], distort_opencv(xy[cv], params[cv]))
     fe = kind == Distortion.FISHEYE
     torch.testing.assert_close(out[fe], distort_fisheye(xy[fe], params[fe]))
+    assert models_present(kind) == (True, True) and models_present(kind[none]) == (False, False)
+    assert models_present(kind[cv]) == (True, False) and models_present(kind[fe]) == (False, True)
+    # the models given by the caller (known on the host): the same values, nothing read back for them
+    from nerfpipe.training.opcount import DispatchCounter
+
+    for sub in (slice(None), none, cv):
+        present = models_present(kind[sub])
+        with DispatchCounter() as c:
+            given = distort(xy[sub], kind[sub], params[sub], present)
+        torch.testing.assert_close(given, distort(xy[sub], kind[sub], params[sub]))
+        assert "Tensor.tolist" not in c.sync_ops, dict(c.sync_ops)
+    torch.testing.assert_close(undistort(out, kind, params, (True, True)), undistort(out, kind, params))
 
 
 @pytest.mark.parametrize("shape", [(), (1,), (2, 3)])

@@ -80,11 +80,11 @@ COUNTED = 16
 MAX_OPS_PER_STEP = 1440
 """ATen ops per steady step at most (measured: 1497 at commit 9f82e41, 1426 after the constants were built once;
 views included, 448 of them). Issue 13's goal is 300: it takes fused kernels."""
-MAX_SYNCS_PER_STEP = 10.0
+MAX_SYNCS_PER_STEP = 9.0
 """Host syncs per steady step at most (measured: 73.9 at commit 9f82e41, 40.3 of them constant uploads; 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each
-for the rays that start and the samples kept, one for camera undistortion's models, 3 per occupancy refresh).
-Issue 13's goal is 1: it takes fixed-capacity sample buffers."""
+for the rays that start and the samples kept, one for camera undistortion's models, 3 per occupancy refresh;
+8.6 since the sampler reads the models once). Issue 13's goal is 1: it takes fixed-capacity sample buffers."""
 
 
 @pytest.fixture(scope="module", params=["cpu", pytest.param("cuda", marks=pytest.mark.requires_cuda)])
@@ -111,8 +111,8 @@ def test_steady_fast_training_step_stays_within_its_op_and_sync_budget(steady_co
 def test_no_constant_is_uploaded_and_no_loss_read_back_in_a_steady_step(steady_counts):
     """Constants are built once (not ``torch.tensor(list)`` per call) and the loss is read when logged, not per step."""
     assert steady_counts.uploads == 0, steady_counts
-    assert set(steady_counts.sync_ops) <= {"aten.nonzero", "aten._local_scalar_dense", "aten._unique2", "Tensor.tolist"}, steady_counts
+    assert set(steady_counts.sync_ops) <= {"aten.nonzero", "aten._local_scalar_dense", "aten._unique2"}, steady_counts
     # one occupancy refresh in the counted steps: whether there is density yet, and the new marching box's coarse
     # step and diagonal (read once per box); a loss read per step would add 16
     assert steady_counts.sync_ops.get("aten._local_scalar_dense", 0) <= 3, steady_counts
-    assert steady_counts.sync_ops.get("Tensor.tolist", 0) <= COUNTED, steady_counts  # undistortion's models
+    assert "Tensor.tolist" not in steady_counts.sync_ops, steady_counts  # undistortion's models: read once by the sampler

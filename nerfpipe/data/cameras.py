@@ -23,7 +23,7 @@ from typing import ClassVar
 import torch
 
 from nerfpipe.data.tensor_dataclass import TensorDataclass
-from nerfpipe.functional.distortion import Distortion, distort, undistort
+from nerfpipe.functional.distortion import Distortion, distort, models_present, undistort
 from nerfpipe.util.typing import Float, Int, Tensor
 
 # OpenGL camera axes expressed in OpenCV camera axes: flip y and z.
@@ -168,13 +168,19 @@ class Cameras(TensorDataclass):
         return bool((self.distortion != Distortion.NONE).any())
 
     # ---------------------------------------------------------------- pixels <-> camera rays
-    def pixel_to_normalized(self, uv: Float[Tensor, "*bs 2"]) -> Float[Tensor, "*bs 2"]:
+    def pixel_to_normalized(self, uv: Float[Tensor, "*bs 2"], present: "tuple[bool, bool] | None" = None) -> Float[Tensor, "*bs 2"]:
         """Pixel coordinates -> undistorted normalised coordinates ``(X/Z, Y/Z)``.
 
-        ``self`` must have the same batch shape as ``uv`` (index the cameras first).
+        ``self`` must have the same batch shape as ``uv`` (index the cameras first). ``present``: the
+        :meth:`distortion_models` of these cameras or of the set they were drawn from, when known (None: read back).
         """
         xy_d = torch.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], dim=-1)
-        return undistort(xy_d, self.distortion, self.dist_params)
+        return undistort(xy_d, self.distortion, self.dist_params, present)
+
+    def distortion_models(self) -> "tuple[bool, bool]":
+        """Whether any of these cameras has the OpenCV model, and whether any has the fisheye model
+        (:func:`~nerfpipe.functional.distortion.models_present`: one read back)."""
+        return models_present(self.distortion)
 
     def normalized_to_pixel(self, xy: Float[Tensor, "*bs 2"]) -> Float[Tensor, "*bs 2"]:
         """Undistorted normalised coordinates -> pixel coordinates (applies distortion)."""

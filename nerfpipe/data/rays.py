@@ -47,13 +47,17 @@ def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> 
     return torch.stack([u, v], dim=-1)
 
 
-def generate_rays(cameras: Cameras, cam_idx: Int[Tensor, "*bs"], uv: Float[Tensor, "*bs 2"]) -> RayBundle:
+def generate_rays(
+    cameras: Cameras, cam_idx: Int[Tensor, "*bs"], uv: Float[Tensor, "*bs 2"], present: "tuple[bool, bool] | None" = None
+) -> RayBundle:
     """Rays through pixel coordinates ``uv`` of cameras ``cameras[cam_idx]``, undistorted.
 
     Args:
         cameras: a flat batch of cameras ``[num_cams]``.
         cam_idx: which camera each pixel belongs to.
         uv: pixel coordinates; integer pixel ``(i, j)`` has its centre at ``(j + 0.5, i + 0.5)``.
+        present: ``cameras.distortion_models()``, when the caller keeps it (a sampler drawing every step from
+            the same cameras): no read back per call (None: read back, a host sync on CUDA).
 
     Returns:
         Unit-direction rays from the camera centres, in world coordinates.
@@ -65,7 +69,7 @@ def generate_rays(cameras: Cameras, cam_idx: Int[Tensor, "*bs"], uv: Float[Tenso
         [[0.0, 0.0, 1.0]]
     """
     cams = cameras[cam_idx]
-    xy = cams.pixel_to_normalized(uv.to(cams.fx.dtype))
+    xy = cams.pixel_to_normalized(uv.to(cams.fx.dtype), present)
     d_cam = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
     d_cam = F.normalize(d_cam, dim=-1)
     rot = cams.world_from_cam[..., :3, :3]

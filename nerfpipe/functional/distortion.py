@@ -107,26 +107,39 @@ def _tolerance(x: Tensor) -> float:
 
 
 def distort(
-    xy: Float[Tensor, "*bs 2"], kind: Int[Tensor, "*bs"], params: Float[Tensor, "*bs 4"]
+    xy: Float[Tensor, "*bs 2"], kind: Int[Tensor, "*bs"], params: Float[Tensor, "*bs 4"], present: "tuple[bool, bool] | None" = None
 ) -> Float[Tensor, "*bs 2"]:
-    """Distort normalised coordinates with a per-element model code (see :class:`Distortion`)."""
-    return _dispatch(xy, kind, params, distort_opencv, distort_fisheye)
+    """Distort normalised coordinates with a per-element model code (see :class:`Distortion`); ``present``:
+    :func:`models_present` of ``kind`` or of a batch it was drawn from, when the caller knows it (None: read back)."""
+    return _dispatch(xy, kind, params, distort_opencv, distort_fisheye, present)
 
 
 def undistort(
-    xy_d: Float[Tensor, "*bs 2"], kind: Int[Tensor, "*bs"], params: Float[Tensor, "*bs 4"]
+    xy_d: Float[Tensor, "*bs 2"], kind: Int[Tensor, "*bs"], params: Float[Tensor, "*bs 4"], present: "tuple[bool, bool] | None" = None
 ) -> Float[Tensor, "*bs 2"]:
-    """Undistort normalised coordinates with a per-element model code (see :class:`Distortion`)."""
-    return _dispatch(xy_d, kind, params, undistort_opencv, undistort_fisheye)
+    """Undistort normalised coordinates with a per-element model code (see :class:`Distortion`); ``present`` as
+    for :func:`distort`."""
+    return _dispatch(xy_d, kind, params, undistort_opencv, undistort_fisheye, present)
 
 
-def _dispatch(xy, kind, params, opencv_fn, fisheye_fn):
+_MODELS = (Distortion.OPENCV, Distortion.FISHEYE)
+"""The distortion models with a formula, in the order of :func:`models_present`."""
+
+
+def models_present(kind: Int[Tensor, "*bs"]) -> "tuple[bool, bool]":
+    """Whether any element has the OpenCV model, and whether any has the fisheye model: read back from the
+    device once (a host sync on CUDA). Computed once for a set of cameras, it spares every batch drawn from
+    them the read (``present=``)."""
+    return tuple(torch.stack([(kind == code).any() for code in _MODELS]).tolist())
+
+
+def _dispatch(xy, kind, params, opencv_fn, fisheye_fn, present=None):
     # Each model runs only on its own elements, so one model's parameters never reach the
     # other's formula (no NaN in unused branches, hence none in gradients).
-    # Which models occur is read back once for both (a host sync on CUDA; two reads were two).
-    out, models = xy, ((Distortion.OPENCV, opencv_fn), (Distortion.FISHEYE, fisheye_fn))
-    present = torch.stack([(kind == code).any() for code, _ in models]).tolist()
-    for (code, fn), found in zip(models, present):
+    # Which models occur is read back once for both (a host sync on CUDA; two reads were two), unless given.
+    out = xy
+    present = models_present(kind) if present is None else present
+    for code, fn, found in zip(_MODELS, (opencv_fn, fisheye_fn), present):
         if found:
             mask = kind == code
             out = out.clone() if out is xy else out

@@ -183,6 +183,8 @@ class PixelSampler:
         ``error_share``: the share of the pixel rays drawn from the error map (0: none, all uniform)."""
         cameras = scene.split_cameras(split).capped(max_side)
         self.cameras = cameras.to(device)
+        self._models = cameras.distortion_models()
+        """Which distortion models the cameras have, read on the host once (not from the device with every batch's rays)."""
         self.widths = cameras.width.clone()
         """Width of each image, on the host (indexing the device's copy would read it back every step)."""
         self.pixels, self.offsets = load_split_pixels(scene, split, cameras)
@@ -237,7 +239,7 @@ class PixelSampler:
         uv = torch.stack([col, row], dim=-1).float() + 0.5
         bg = background_colors(self.background, num_rays, generator)
         rgb = composite_pixels(self.pixels[idx], bg)
-        rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv))
+        rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv), self._models)
         return PixelBatch(rays=rays, rgb=self._upload(rgb), background=self._upload(bg))
 
     def _upload(self, t: Tensor) -> Tensor:
