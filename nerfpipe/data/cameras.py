@@ -165,7 +165,7 @@ class Cameras(TensorDataclass):
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w.round().long(), height=h.round().long())
 
     def has_distortion(self) -> bool:
-        return bool((self.distortion != Distortion.NONE).any())
+        return any(self.distortion_models())
 
     # ---------------------------------------------------------------- pixels <-> camera rays
     def pixel_to_normalized(self, uv: Float[Tensor, "*bs 2"], present: "tuple[bool, bool] | None" = None) -> Float[Tensor, "*bs 2"]:
