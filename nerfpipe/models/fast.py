@@ -63,16 +63,6 @@ def auto_preset(info: SceneInfo) -> str:
 APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
-FINE_GRID_LR_REAL = 0.1
-"""``FastConfig.fine_grid_lr`` of real captures: the fine levels learn ten times slower than the coarsest, which
-builds the geometry. colmap_mouse side by side (``python -m benchmarks.side_by_side``, 7 held-out views at 400 px, one
-ray per pixel), after 300 / 600 steps: 1.0 (before) 23.79 / 24.27 dB; 0.1 24.10 / **24.50** at 1.26x the seconds per
-step (19.5 samples per ray after 600 steps against 13; a softer early surface stops rays later); 0.1 on the two hashed
-levels only 23.95 / 24.40, 0.03 on them 23.94 / 24.40; every level at 0.1 24.04 / 24.48 at 1.9x the seconds per step.
-``nerfpipe run colmap_mouse --time-budget 300``: 24.22 dB after 706 iterations (before) against **24.38** after 649.
-The synthetic scenes keep ``grid_lr`` everywhere: lego_200 at 300 steps, the finest dense level at 0.3 / 0.1 gave
-27.59 / 27.35 dB against 27.76 (100 views of a noise-free scene reach every vertex often)."""
-
 MAX_LEVELS = 5
 """Grid levels of a ``compact`` field at most (each level costs a gather per sample)."""
 
@@ -154,11 +144,18 @@ class FastConfig:
     grid_lr: float = 1.0
     """Adam learning rate of the grid tables (high: each step moves a vertex by about this much)."""
     fine_grid_lr: "float | None" = None
-    """Adam learning rate of every grid level but the coarsest (None: :data:`FINE_GRID_LR_REAL` for real captures,
-    ``SceneInfo.unbounded``; ``grid_lr`` otherwise). Adam moves a vertex by about its learning rate whatever the size
-    of its gradient, so at 1.0 a fine vertex that few training rays reach (most of them, in the first thousand
-    steps of a real capture) jumps by whole units of density and colour feature: the renders of real captures show
-    a salt-and-pepper speckle of opacity on the object and the table, in held-out and in training views alike."""
+    """Adam learning rate of every grid level but the coarsest (None: ``grid_lr``). Adam moves a vertex by about its
+    learning rate whatever the size of its gradient, so at 1.0 a fine vertex that few training rays reach jumps by whole
+    units of density: renders of colmap_mouse after 600 steps show a salt-and-pepper speckle of opacity on the mouse and
+    the table, in training and held-out views alike. 0.1 smooths it, but the softer surfaces stop rays later (more
+    samples per ray), so a time budget buys fewer steps. Side by side (7 held-out views at 400 px, one ray per pixel)
+    after 300 / 600 steps: 1.0 23.79 / 24.27 dB, 0.1 24.10 / 24.50 at 1.26x the seconds per step (only the colour
+    features' fine levels at 0.1: 23.97 / 24.35 at no extra time; only the density's: 23.98 / 24.42). End to end, back to
+    back: ``nerfpipe run colmap_mouse --time-budget 300`` 24.38 dB (649 iterations) against 24.22 (706), but
+    ``nerfpipe run ngp_fox --time-budget 180`` 25.67 dB (271) against 26.38 (385), a 23-photo cut of colmap_mouse
+    (``--time-budget 180``) 23.19 (340) against 23.28 (460), ``nerfpipe demo`` F-score@1 % 0.958 against 0.978, and
+    lego_200 at 300 steps with its finest level at 0.1 27.35 dB against 27.76: not a default. For a large capture
+    trained to its plateau."""
     mlp_lr: float = 1e-2
     """Adam learning rate of the colour MLP."""
     lr_decay_steps: int = 2000
@@ -327,7 +324,7 @@ class FastModel(Model):
         self._samples_per_ray = 0.0
         sparse = real and info.arc >= SPARSITY_MIN_ARC and info.num_images <= SPARSITY_MAX_VIEWS
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
-        self.fine_grid_lr = (FINE_GRID_LR_REAL if real else cfg.grid_lr) if cfg.fine_grid_lr is None else cfg.fine_grid_lr
+        self.fine_grid_lr = cfg.grid_lr if cfg.fine_grid_lr is None else cfg.fine_grid_lr
 
     @staticmethod
     def _background_head(code_dim: int = 0) -> torch.nn.Module:
