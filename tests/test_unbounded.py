@@ -112,10 +112,10 @@ def test_real_capture_defaults_and_synthetic_defaults():
     assert on_black.behind is None and on_black.appearance is None
 
 
-def test_fine_grid_lr_sets_every_level_but_the_coarsest():
-    """By default every grid level learns at grid_lr (real and synthetic scenes alike); fine_grid_lr sets every level but
-    the coarsest. Every parameter is in exactly one group, and one Adam step moves a fine vertex by at most about its
-    group's rate, the coarsest by about grid_lr."""
+def test_fine_levels_learning_rates():
+    """The coarsest level learns at grid_lr; the finer levels' colour features at fine_feature_lr, their density at
+    fine_density_lr (default grid_lr), real and synthetic scenes alike. Every parameter is in exactly one group, and one
+    Adam step moves a fine vertex by at most about its group's rate, the coarsest by about grid_lr."""
     info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=40, pixels_per_image=10**6)
 
     def lrs(model):
@@ -125,22 +125,26 @@ def test_fine_grid_lr_sets_every_level_but_the_coarsest():
 
     real = FastConfig(preset="small").setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
     synthetic = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True))
-    chosen = FastConfig(preset="small", fine_grid_lr=0.1).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
-    assert lrs(real) == [[real.cfg.grid_lr] * 3] * 2
-    assert lrs(synthetic) == [[synthetic.cfg.grid_lr] * 3] * 2
-    assert lrs(chosen) == [[chosen.cfg.grid_lr, 0.1, 0.1]] * 2
+    chosen = FastConfig(preset="small", fine_density_lr=0.2, fine_feature_lr=0.3).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    for model in (real, synthetic):
+        g, f = model.cfg.grid_lr, model.cfg.fine_feature_lr
+        assert f < g and lrs(model) == [[g, g, g], [g, f, f]]
+    assert lrs(chosen) == [[chosen.cfg.grid_lr, 0.2, 0.2], [chosen.cfg.grid_lr, 0.3, 0.3]]
     for model in (real, synthetic, chosen):
         params = [id(p) for g in model.param_groups() for p in g["params"]]
         assert sorted(params) == sorted(id(p) for p in model.parameters() if p.requires_grad)
     # the second level is the finest active one at the start (coarse to fine)
     chosen.train()
     opt = torch.optim.Adam(chosen.param_groups())
-    before = [t.detach().clone() for t in chosen.field.density_grid.tables]
+    tables = [chosen.field.density_grid.tables, chosen.field.feature_grid.tables]
+    before = [[t.detach().clone() for t in level] for level in tables]
     out = chosen.get_outputs(_rays(256), torch.zeros(256, 3))
     chosen.get_losses(out, torch.full((256, 3), 0.8))["rgb"].backward()
     opt.step()
-    moved = [float((t.detach() - b).abs().max()) for t, b in zip(chosen.field.density_grid.tables, before)]
-    assert moved[0] > 0.5 * chosen.cfg.grid_lr and 0.05 < moved[1] <= 0.101, moved
+    moved = [[float((t.detach() - b).abs().max()) for t, b in zip(level, old)] for level, old in zip(tables, before)]
+    (d0, d1, _), (f0, f1, _) = moved
+    assert d0 > 0.5 * chosen.cfg.grid_lr and 0.1 < d1 <= 0.201, moved
+    assert f0 > 0.5 * chosen.cfg.grid_lr and 0.15 < f1 <= 0.301, moved
 
 
 def test_appearance_codes_are_zero_mean_and_identity_in_evaluation():

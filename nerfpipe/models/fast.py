@@ -143,19 +143,25 @@ class FastConfig:
     """Override the preset's colour MLP width."""
     grid_lr: float = 1.0
     """Adam learning rate of the grid tables (high: each step moves a vertex by about this much)."""
-    fine_grid_lr: "float | None" = None
-    """Adam learning rate of every grid level but the coarsest (None: ``grid_lr``). Adam moves a vertex by about its
-    learning rate whatever the size of its gradient, so at 1.0 a fine vertex that few training rays reach jumps by whole
-    units of density: renders of colmap_mouse after 600 steps show a salt-and-pepper speckle of opacity on the mouse and
-    the table, in training and held-out views alike. 0.1 smooths it, but the softer surfaces stop rays later (more
-    samples per ray), so a time budget buys fewer steps. Side by side (7 held-out views at 400 px, one ray per pixel)
-    after 300 / 600 steps: 1.0 23.79 / 24.27 dB, 0.1 24.10 / 24.50 at 1.26x the seconds per step (only the colour
-    features' fine levels at 0.1: 23.97 / 24.35 at no extra time; only the density's: 23.98 / 24.42). End to end, back to
-    back: ``nerfpipe run colmap_mouse --time-budget 300`` 24.38 dB (649 iterations) against 24.22 (706), but
-    ``nerfpipe run ngp_fox --time-budget 180`` 25.67 dB (271) against 26.38 (385), a 23-photo cut of colmap_mouse
-    (``--time-budget 180``) 23.19 (340) against 23.28 (460), ``nerfpipe demo`` F-score@1 % 0.958 against 0.978, and
-    lego_200 at 300 steps with its finest level at 0.1 27.35 dB against 27.76: not a default. For a large capture
-    trained to its plateau."""
+    fine_feature_lr: float = 0.1
+    """Adam learning rate of the colour features of every grid level but the coarsest. Adam moves a vertex by about its
+    learning rate whatever the size of its gradient, and at ``grid_lr`` (1.0) a fine vertex that few training rays reach
+    jumps by whole units. Side by side at equal steps (``python -m benchmarks.side_by_side``), 1.0 against 0.1, at the
+    same seconds per step: colmap_mouse (7 held-out views at 400 px, one ray per pixel) 23.79 / 24.27 dB against
+    23.97 / 24.35 after 300 / 600 steps; lego_200 27.76 against 27.82 after 300 (0.3: 27.73). End to end, back to back:
+    ``nerfpipe run ngp_fox --time-budget 180`` 26.38 dB (385 iterations) against 26.59 (376); ``nerfpipe demo`` 26.47 dB,
+    F-score@1 % 0.978 (753) against 26.30, 0.974 (774)."""
+    fine_density_lr: "float | None" = None
+    """Adam learning rate of the density of every grid level but the coarsest (None: ``grid_lr``). At 1.0, renders of
+    colmap_mouse after 600 steps show a salt-and-pepper speckle of opacity on the mouse and the table, in training and
+    held-out views alike; 0.1 (with the features' 0.1) smooths it, but the softer surfaces stop rays later (more samples
+    per ray), so a time budget buys fewer steps. colmap_mouse side by side after 300 / 600 steps: 24.10 / 24.50 dB at
+    1.26x the seconds per step (the features at 1.0 and the density at 0.1: 23.98 / 24.42). End to end with both at 0.1
+    against both at 1.0, back to back: ``nerfpipe run colmap_mouse --time-budget 300`` 24.38 dB (649 iterations) against
+    24.22 (706), but ``nerfpipe run ngp_fox --time-budget 180`` 25.67 (271) against 26.38 (385), a 23-photo cut of
+    colmap_mouse (``--time-budget 180``) 23.19 (340) against 23.28 (460), ``nerfpipe demo`` F-score@1 % 0.958 against
+    0.978; lego_200 after 300 steps with its finest level's density and features at 0.1: 27.35 dB against 27.76. For a
+    large capture trained to its plateau."""
     mlp_lr: float = 1e-2
     """Adam learning rate of the colour MLP."""
     lr_decay_steps: int = 2000
@@ -324,7 +330,6 @@ class FastModel(Model):
         self._samples_per_ray = 0.0
         sparse = real and info.arc >= SPARSITY_MIN_ARC and info.num_images <= SPARSITY_MAX_VIEWS
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
-        self.fine_grid_lr = cfg.grid_lr if cfg.fine_grid_lr is None else cfg.fine_grid_lr
 
     @staticmethod
     def _background_head(code_dim: int = 0) -> torch.nn.Module:
@@ -616,11 +621,12 @@ class FastModel(Model):
 
     def param_groups(self) -> "list[dict]":
         coarsest = [self.field.density_grid.tables[0], self.field.feature_grid.tables[0]]
-        finer = list(self.field.density_grid.tables[1:]) + list(self.field.feature_grid.tables[1:])
+        density_lr = self.cfg.grid_lr if self.cfg.fine_density_lr is None else self.cfg.fine_density_lr
         groups = [
             {"params": coarsest, "lr": self.cfg.grid_lr, "eps": 1e-15},
             {"params": list(self.field.mlp.parameters()), "lr": self.cfg.mlp_lr, "eps": 1e-15},
-            {"params": finer, "lr": self.fine_grid_lr, "eps": 1e-15},
+            {"params": list(self.field.density_grid.tables[1:]), "lr": density_lr, "eps": 1e-15},
+            {"params": list(self.field.feature_grid.tables[1:]), "lr": self.cfg.fine_feature_lr, "eps": 1e-15},
         ]
         if self.background is not None:
             groups[1]["params"] += list(self.background.parameters())
