@@ -142,7 +142,8 @@ class FastConfig:
     hidden: "int | None" = None
     """Override the preset's colour MLP width."""
     grid_lr: float = 1.0
-    """Adam learning rate of the grid tables (high: each step moves a vertex by about this much)."""
+    """Adam learning rate of the coarsest grid level's tables, and of the finer levels' density unless
+    ``fine_density_lr`` is set (high: each step moves a vertex by about this much)."""
     fine_feature_lr: float = 0.1
     """Adam learning rate of the colour features of every grid level but the coarsest. Adam moves a vertex by about its
     learning rate whatever the size of its gradient, and at ``grid_lr`` (1.0) a fine vertex that few training rays reach
