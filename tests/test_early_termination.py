@@ -87,7 +87,7 @@ def test_rounds_keep_exactly_the_reference_samples(rounds, jitter, min_alpha, de
     # the hard cases are present: rays without samples, opaque at their first sample, wholly transparent
     marched = torch.bincount(full.ray_indices, minlength=400)
     kept = torch.bincount(got.ray_indices, minlength=400)
-    first = full.ray_indices.new_full((400,), -1).scatter_reduce(0, full.ray_indices, torch.arange(len(full)), "amin", include_self=False)
+    first = full.ray_indices.new_full((400,), -1).scatter_reduce(0, full.ray_indices, torch.arange(len(full), device=device), "amin", include_self=False)
     first_sigma = torch.where(first >= 0, density(full.points(o, d))[first.clamp(min=0)], 0.0)
     assert (marched == 0).sum() >= 50
     assert ((first_sigma == 1e30) & (kept == 1) & (marched > 1)).any()

@@ -97,7 +97,7 @@ def test_a_resumed_run_goes_on_with_its_error_map(scene_path, tmp_path):
     scene = load(scene_path("lego_200x200") / "lego_200x200.npz")
     model = FastConfig(levels=(16, 32), tighten_step=0)
     cfg = dict(iters=6, rays_per_step=256, eval_every=0, checkpoint_every=3, video_frames=0, final_eval_views=1,
-               write_outputs=False, num_threads=1, error_sampling=0.8, error_tiles=1024)
+               write_outputs=False, num_threads=1, error_sampling=0.8, error_tiles=1024, device="cpu")  # bit-exact: the CPU
     straight = Trainer(TrainerConfig(**cfg), scene, "fast", model, tmp_path / "straight")
     straight.train()
     Trainer(TrainerConfig(**{**cfg, "iters": 3}), scene, "fast", model, tmp_path / "split").train()

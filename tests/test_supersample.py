@@ -56,12 +56,13 @@ def reference(model, cams: Cameras, i: int, k: int) -> dict:
 def test_supersampled_render_is_the_mean_of_its_sub_pixel_rays(k, device):
     model, cams = StripesModel(), cameras()
     views = render_cameras(model, cams.to(device), chunk=97, supersample=k)
+    tol = 1e-5 if torch.device(device).type == "cpu" else 5e-5  # CUDA sums in another order (2.6e-5 seen on an H100)
     for i, view in enumerate(views):
         ref = reference(model, cams, i, k)
         view = type(view)(**{key: getattr(view, key).cpu() for key in ("rgb", "depth", "acc", "stop_depth")})
         assert view.rgb.shape == (23, 31, 3)
         for key in ("rgb", "depth", "acc", "stop_depth"):
-            torch.testing.assert_close(getattr(view, key), ref[key].to(getattr(view, key).dtype), rtol=1e-5, atol=1e-5, equal_nan=True)
+            torch.testing.assert_close(getattr(view, key), ref[key].to(getattr(view, key).dtype), rtol=tol, atol=tol, equal_nan=True)
     if k > 1:  # the stripes are finer than a pixel: averaging changes the picture
         assert (views[0].rgb.cpu() - render_cameras(model, cams)[0].rgb).abs().max() > 0.05
 

@@ -244,10 +244,12 @@ class PixelSampler:
 
     def _upload(self, t: Tensor) -> Tensor:
         """A batch tensor drawn on the host, on the sampler's device: to CUDA through pinned memory without
-        blocking (a copy from pageable memory makes the host wait for the stream, once per tensor and step)."""
+        blocking (a copy from pageable memory makes the host wait for the stream, once per tensor and step).
+        An expanded tensor (one background colour for every ray) is made contiguous first: ``pin_memory`` refuses
+        tensors whose elements share memory."""
         if self.device.type != "cuda":
             return t.to(self.device)
-        return t.pin_memory().to(self.device, non_blocking=True)
+        return t.contiguous().pin_memory().to(self.device, non_blocking=True)
 
 
 def _cat_rays(a: RayBundle, b: RayBundle) -> RayBundle:
