@@ -248,3 +248,19 @@ def test_cpu_clock_budget_counts_process_seconds(tiny_scene, tmp_path, monkeypat
     assert t.step == 4 and t.train_seconds == 12.0  # 3 CPU seconds per step, stopped once 10 were spent
     with pytest.raises(NerfpipeError, match="--clock must be wall or cpu"):
         tcfg(clock="sundial")
+
+
+def test_a_budget_not_an_iteration_count_ends_a_budgeted_run(tiny_scene, tmp_path):
+    """Without ``iters``: 1,000 iterations without a budget, no cap under one (an H100 ended a 60 s budget on lego_200
+    after 31 s at the old cap); a set ``iters`` caps either."""
+    from nerfpipe.training.trainer import DEFAULT_ITERS
+
+    assert TrainerConfig().max_iters == DEFAULT_ITERS == 1000
+    assert TrainerConfig(iters=5, time_budget=60.0).max_iters == 5
+    for budget in (dict(time_budget=3600.0), dict(train_budget=3600.0)):
+        assert TrainerConfig(**budget).max_iters > 10**12
+    free = Trainer(tcfg(iters=None), tiny_scene, "vanilla", MODEL, tmp_path / "free")
+    budgeted = Trainer(tcfg(iters=None, time_budget=3600.0), tiny_scene, "vanilla", MODEL, tmp_path / "budgeted")
+    for t in (free, budgeted):
+        t.step = DEFAULT_ITERS
+    assert free.done() and not budgeted.done()

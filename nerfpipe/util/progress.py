@@ -35,7 +35,7 @@ class TrainProgress:
     def total(self) -> float:
         if self.window is not None:
             return self.window
-        return float(self.cfg.train_budget if self.cfg.train_budget is not None else self.cfg.iters)
+        return float(self.cfg.train_budget if self.cfg.train_budget is not None else self.cfg.max_iters)
 
     def __enter__(self) -> "TrainProgress":
         self.progress.start()
@@ -50,9 +50,9 @@ class TrainProgress:
             if self.start_wall is None:  # first update: speed is measured from here (set-up is not training)
                 self.start_wall, self.first_step = wall, step
                 return max(self.cfg.time_budget - wall, 0.0)
-            by_iters = (self.cfg.iters - step) * (wall - self.start_wall) / max(step - self.first_step, 1)
+            by_iters = (self.cfg.max_iters - step) * (wall - self.start_wall) / max(step - self.first_step, 1)
             return min(by_iters, max(self.window - wall, 0.0)) + (self.cfg.time_budget - self.window)
-        left = (self.cfg.iters - step) * (seconds - self.start_seconds) / max(step - self.start_step, 1)
+        left = (self.cfg.max_iters - step) * (seconds - self.start_seconds) / max(step - self.start_step, 1)
         if self.cfg.train_budget is not None:
             left = min(left, max(self.cfg.train_budget - seconds, 0.0))
         return left
@@ -63,7 +63,7 @@ class TrainProgress:
             return min(wall, self.window), f"{wall:.0f}/{self.window:.0f} s, step {step}"
         if self.cfg.train_budget is not None:
             return min(seconds, self.cfg.train_budget), f"{seconds:.0f}/{self.cfg.train_budget:.0f} s, step {step}"
-        return float(step), f"{step}/{self.cfg.iters}"
+        return float(step), f"{step}/{self.cfg.max_iters}"
 
     def update(self, step: int, seconds: float, psnr: float, wall: "float | None" = None) -> None:
         eta = time.strftime("%H:%M:%S", time.gmtime(self.eta(step, seconds, wall)))
