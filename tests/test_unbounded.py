@@ -147,6 +147,40 @@ def test_fine_levels_learning_rates():
     assert f0 > 0.5 * chosen.cfg.grid_lr and 0.15 < f1 <= 0.301, moved
 
 
+def test_real_captures_take_density_from_the_coarsest_levels_and_colour_from_all():
+    """Real captures (a field behind the box): density from DENSITY_LEVELS_REAL levels (the finer density tables change
+    nothing), colour from every level; synthetic scenes, a real capture without the field behind the box (as the demo
+    runs) and an explicit option as set; a checkpoint from before the option keeps every level."""
+    from nerfpipe.models.fast import DENSITY_LEVELS_REAL
+
+    info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100)
+    real = FastConfig(preset="small", coarse_to_fine_every=0).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    synthetic = FastConfig(preset="small", coarse_to_fine_every=0).setup(SceneInfo(**info, has_alpha=True))
+    one = FastConfig(preset="small", coarse_to_fine_every=0, density_levels=1).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    levels = len(real.field.density_grid.tables)
+    assert DENSITY_LEVELS_REAL < levels and real.field.density_levels == int(real.density_levels) == DENSITY_LEVELS_REAL
+    bounded = FastConfig(preset="small", coarse_to_fine_every=0, background_field=False).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    assert synthetic.field.density_levels == bounded.field.density_levels == levels and one.field.density_levels == 1
+    pts, dirs = torch.rand(500, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    for model in (real, synthetic):
+        with torch.no_grad():
+            for t in [*model.field.density_grid.tables, *model.field.feature_grid.tables]:
+                t.normal_(0.0, 0.5)
+            sigma, rgb = model.field.density(pts), model.field.rgb(pts, dirs)
+            model.field.density_grid.tables[-1].add_(1.0)
+            model.field.feature_grid.tables[-1].add_(1.0)
+            same_sigma = torch.equal(model.field.density(pts), sigma)
+            assert not torch.allclose(model.field.rgb(pts, dirs), rgb)  # colour reads the finest level
+        assert same_sigma == (model is real)
+    # the training pass (corners of every level, then density from them) agrees with the density pass
+    with torch.no_grad():
+        torch.testing.assert_close(real.field.density_from_corners(real.field.corners(pts)), real.field.density(pts))
+    old = {k: v for k, v in real.state_dict().items() if k != "density_levels"}
+    fresh = FastConfig(preset="small", coarse_to_fine_every=0).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    fresh.load_state_dict(old)
+    assert fresh.field.density_levels == levels
+
+
 def test_appearance_codes_are_zero_mean_and_identity_in_evaluation():
     model = _model()
     with torch.no_grad():

@@ -76,6 +76,8 @@ class FastField(nn.Module):
         self.feature_grid = DenseGridEncoding(resolutions, feature_channels, max_rows=max_rows)
         self.shift = math.log(math.expm1(init_density))
         self.active_levels = len(resolutions)
+        self.density_levels = len(resolutions)
+        """Density is the sum of the coarsest this many levels (colour reads every active level)."""
         self._voxel_sizes: "dict[tuple, float]" = {}
         """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
         self.mlp = nn.Sequential(
@@ -92,13 +94,14 @@ class FastField(nn.Module):
     def hashed(self, level: int) -> bool:
         return self.density_grid.hash_rows[level] is not None
 
-    def corners(self, points: Float[Tensor, "num_points 3"]) -> list:
-        """Trilinear corners of every active level (shared by the density and feature reads)."""
+    def corners(self, points: Float[Tensor, "num_points 3"], levels: "int | None" = None) -> list:
+        """Trilinear corners of every active level (shared by the density and feature reads), or of the coarsest
+        ``levels`` of them."""
         grid = self.density_grid
         x01 = self.normalize(points)
         x_lat = None
         out = []
-        for level in range(self.active_levels):
+        for level in range(self.active_levels if levels is None else min(levels, self.active_levels)):
             if self.hashed(level) and x_lat is None:
                 x_lat = (points - self.lattice[0]) / (self.lattice[1] - self.lattice[0])
             out.append(grid.corners(level, x_lat if self.hashed(level) else x01))
@@ -117,7 +120,7 @@ class FastField(nn.Module):
 
     def density_from_corners(self, corners: list) -> Float[Tensor, "num_points"]:
         raw = None
-        for table, (idx, w) in zip(self.density_grid.tables, corners):
+        for table, (idx, w) in zip(self.density_grid.tables, corners[: self.density_levels]):
             v = grid_gather(table, idx, w)
             raw = v if raw is None else raw + v
         return nn.functional.softplus(raw[:, 0] + self.shift)
@@ -132,7 +135,7 @@ class FastField(nn.Module):
         return torch.sigmoid(self.mlp(h))
 
     def density(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points"]:
-        return self.density_from_corners(self.corners(points))
+        return self.density_from_corners(self.corners(points, self.density_levels))
 
     def rgb(self, points: Float[Tensor, "num_points 3"], directions: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 3"]:
         return self.rgb_from_corners(self.corners(points), direction_encoding(directions))
