@@ -76,10 +76,10 @@ class FastField(nn.Module):
         self.feature_grid = DenseGridEncoding(resolutions, feature_channels, max_rows=max_rows)
         self.shift = math.log(math.expm1(init_density))
         self.active_levels = len(resolutions)
+        """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
         self.density_levels = len(resolutions)
         """Density is the sum of the coarsest this many levels (colour reads every active level)."""
         self._voxel_sizes: "dict[tuple, float]" = {}
-        """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""
         self.mlp = nn.Sequential(
             nn.Linear(self.feature_grid.out_dim + 16, hidden),
             nn.ReLU(inplace=True),

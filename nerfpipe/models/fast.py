@@ -327,13 +327,13 @@ class FastModel(Model):
         n_levels = len(self.capacity["levels"])
         self.field.active_levels = min(2, n_levels) if cfg.coarse_to_fine_every > 0 else n_levels
         self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
-        surroundings = info.unbounded if cfg.background_field is None else cfg.background_field  # a field behind the box
-        density_levels = (DENSITY_LEVELS_REAL if surroundings else n_levels) if cfg.density_levels is None else cfg.density_levels
+        real = info.unbounded
+        use_behind = real if cfg.background_field is None else cfg.background_field  # a field behind the box
+        density_levels = (DENSITY_LEVELS_REAL if use_behind else n_levels) if cfg.density_levels is None else cfg.density_levels
         self.field.density_levels = max(1, min(density_levels, n_levels))
         self.register_buffer("density_levels", torch.tensor(self.field.density_levels))  # checkpoints keep what they were trained with
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
-        real = info.unbounded
         use_app = (real and info.focal_spread > APPEARANCE_FOCAL_SPREAD) if cfg.appearance is None else cfg.appearance
         self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
         code_dim = cfg.appearance_dim if use_app else 0
@@ -343,7 +343,6 @@ class FastModel(Model):
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head(code_dim) if learn_bg else None
-        use_behind = real if cfg.background_field is None else cfg.background_field
         self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
         self.register_buffer("object_box", aabb.clone(), persistent=False)
         self._object_diagonal = float((aabb[1] - aabb[0]).norm())
