@@ -322,7 +322,8 @@ def _checkpoint_missing_tensors(run: Path, tmp: Path) -> Path:
     from nerfpipe.training.checkpoint import load_checkpoint, save_checkpoint
 
     state = load_checkpoint(run / "checkpoint.safetensors")
-    state["model"] = dict(list(state["model"].items())[1:])
+    drop = next(k for k in state["model"] if "tables" in k)  # a grid: no model gives it a default
+    state["model"] = {k: v for k, v in state["model"].items() if k != drop}
     save_checkpoint(run / "checkpoint.safetensors", state)
     return run / "checkpoint.safetensors"
 

@@ -3,6 +3,7 @@ the field behind the box (renders, learns, leaves the box's own rendering alone 
 and the per-image colour corrections (zero-mean, identity at evaluation)."""
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +14,7 @@ from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
 from nerfpipe.models.base import RenderOutputs, SceneInfo
 from nerfpipe.models.fast import FastConfig
+from nerfpipe.training.runs import load_model_state
 
 
 def test_contract_matches_reference_and_bounds(dtype, device, tol):
@@ -177,7 +179,7 @@ def test_real_captures_take_density_from_the_coarsest_levels_and_colour_from_all
         torch.testing.assert_close(real.field.density_from_corners(real.field.corners(pts)), real.field.density(pts))
     old = {k: v for k, v in real.state_dict().items() if k != "density_levels"}
     fresh = FastConfig(preset="small", coarse_to_fine_every=0).setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
-    fresh.load_state_dict(old)
+    load_model_state(fresh, old, Path("old.safetensors"), "fast")  # as `load_run` and resume load it
     assert fresh.field.density_levels == levels
 
 

@@ -48,14 +48,19 @@ def read_config(run_dir: Path) -> dict:
 
 def load_model_state(model, state: dict, ckpt_path: Path, name: str) -> None:
     """``model.load_state_dict(state)``, a checkpoint that does not fit (another model, tensors missing
-    or of other shapes) being one line naming it (used by :func:`load_run` and the trainer's resume)."""
-    missing = sorted(set(model.state_dict()) - set(state)) if isinstance(state, dict) else ["(all)"]
-    if missing:
-        raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG}: missing tensors {', '.join(missing[:3])}", ckpt_path)
+    or of other shapes) being one line naming it (used by :func:`load_run` and the trainer's resume).
+
+    Tensors are missing only after the model's own loading hooks ran: a model may give tensors that
+    older checkpoints lack their old meaning (the fast model's ``density_levels``, ``trained_steps``)."""
+    if not isinstance(state, dict):
+        raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG}: missing tensors (all)", ckpt_path)
     try:
-        model.load_state_dict(state)
+        result = model.load_state_dict(state, strict=False)
     except (RuntimeError, ValueError, TypeError, KeyError) as exc:
         raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG} ({' '.join(str(exc).split())[:300]})", ckpt_path) from exc
+    for what, keys in (("missing", result.missing_keys), ("unexpected", result.unexpected_keys)):
+        if keys:
+            raise NerfpipeError(f"checkpoint does not fit the '{name}' model of {CONFIG}: {what} tensors {', '.join(sorted(keys)[:3])}", ckpt_path)
 
 
 def model_dir(run_dir: Path) -> Path:
