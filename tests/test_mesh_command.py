@@ -135,18 +135,22 @@ def test_level_from_rendered_depth(fake_run, capsys, rule):
 
 def test_tsdf_views_follow_the_time_budget():
     """With a budget, the first view is timed and only the views that fit are kept (never fewer than
-    min_views; evenly spread from the first); without one, all requested; frames are the same either way."""
-    from nerfpipe.mesh.trained import tsdf_frames
+    min_views, smaller when even those do not fit; evenly spread from the first); without one, all requested;
+    frames are the same either way."""
+    from nerfpipe.mesh.trained import MIN_TSDF_SHRINK, tsdf_frames
 
     scene, model = sphere_scene(), SphereModel()
     train = scene.split_cameras("train")
     cams, frame = tsdf_frames(model, train, 12, 32, 4096, "cpu")
     assert len(cams) == 12
+    enough, enough_frame = tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e6)
+    assert len(enough) == 12 and torch.equal(enough.width, cams.width)
+    depth, rgb = enough_frame(0)
+    assert np.array_equal(depth, frame(0)[0]) and (depth > 0).any()
+    # no time at all: min_views views, evenly spread from the first, at the smallest size (the budget, not the views, holds)
     tight, tight_frame = tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e-9, min_views=3)
     assert len(tight) == 3 and torch.equal(tight.world_from_cam[0], cams.world_from_cam[0])
-    depth, rgb = tight_frame(0)
-    assert np.array_equal(depth, frame(0)[0]) and (depth > 0).any()
-    assert len(tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e6)[0]) == 12
+    assert int(tight.width[0]) == round(32 * MIN_TSDF_SHRINK) and (tight_frame(0)[0] > 0).any()
 
 
 def test_tsdf_renders_smaller_views_rather_than_too_few(monkeypatch):
@@ -162,6 +166,9 @@ def test_tsdf_renders_smaller_views_rather_than_too_few(monkeypatch):
     cams, frame = tsdf_frames(SphereModel(), sphere_scene().split_cameras("train"), 12, 32, 4096, "cpu", seconds=3.0, min_views=3)
     assert len(cams) == 6 and int(cams.width[0]) == round(32 * 0.5**0.5)
     assert frame(0)[0].shape == (int(cams.height[0]), int(cams.width[0]))
+    # 1 s fits one view: min_views = 3 are rendered at sqrt(1/3) of the size (before: 3 at full size, 3 s)
+    cams, frame = tsdf_frames(SphereModel(), sphere_scene().split_cameras("train"), 12, 32, 4096, "cpu", seconds=1.0, min_views=3)
+    assert len(cams) == 3 and int(cams.width[0]) == round(32 * (1 / 3) ** 0.5)
 
 
 class FoggySphereModel(SphereModel):
