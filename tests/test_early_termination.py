@@ -70,7 +70,10 @@ def assert_same_samples(a: PackedSamples, b: PackedSamples) -> None:
     assert torch.equal(a.t_starts, b.t_starts) and torch.equal(a.t_ends, b.t_ends)
 
 
-ROUNDS = {"default": Rounds(), "small_chunked": Rounds(first=1, most=4, steps_per_sample=2, chunk_samples=64)}
+ROUNDS = {
+    "default": Rounds(), "small_chunked": Rounds(first=1, most=4, steps_per_sample=2, chunk_samples=64),
+    "fixed_shapes": None,  # no rounds: every interval of the longest span at once (the sync-free path)
+}
 
 
 @pytest.mark.parametrize("rounds", ROUNDS.values(), ids=ROUNDS.keys())
@@ -81,7 +84,8 @@ def test_rounds_keep_exactly_the_reference_samples(rounds, jitter, min_alpha, de
     o, d = rays(400, seed=1, device=device)
     full, ref, ref_sigma = reference(grid, o, d, Counting(density, o, d), min_alpha, jitter, seed=2)
     torch.manual_seed(2)  # the same jitter
-    got, sigma = grid.march_until_opaque(o, d, 0.0, 10.0, STEP, Counting(density, o, d), MIN_T, min_alpha, jitter=jitter, rounds=rounds)
+    got, sigma = grid.march_until_opaque(o, d, 0.0, 10.0, STEP, Counting(density, o, d), MIN_T, min_alpha, jitter=jitter, rounds=rounds,
+                                         fixed_shapes=rounds is None)
     assert_same_samples(got, ref)
     assert torch.equal(sigma, ref_sigma)
     # the hard cases are present: rays without samples, opaque at their first sample, wholly transparent
@@ -126,9 +130,9 @@ def test_no_rays_and_no_hits():
 INFO = SceneInfo(aabb=AABB, near=0.5, far=6.0, num_images=10, pixels_per_image=1024)
 
 
-def solid_model(early: bool, seed: int = 0):
+def solid_model(early: bool, seed: int = 0, fixed_shapes: bool = False):
     """A fast model whose density is a sphere of opaque matter with a fuzzy shell, grid refreshed from it."""
-    cfg = FastConfig(levels=(8, 16), feature_channels=2, hidden=16, early_termination=early,
+    cfg = FastConfig(levels=(8, 16), feature_channels=2, hidden=16, early_termination=early, fixed_shapes=fixed_shapes,
                      occupancy=OccupancyGridConfig(resolution=16, warmup_steps=16))
     torch.manual_seed(seed)
     model = cfg.setup(INFO)
@@ -162,9 +166,10 @@ def test_model_renders_the_same_in_eval():
     assert (oa.acc > 0.999).sum() > 20 and (oa.acc == 0).sum() > 20 and ((oa.acc > 0.01) & (oa.acc < 0.99)).any()
 
 
+@pytest.mark.parametrize("fast", ["rounds", "fixed_shapes"])
 @pytest.mark.parametrize("step", [0, 40])  # during warm-up (no alpha test) and after
-def test_model_training_outputs_and_gradients_unchanged(step):
-    models = [solid_model(True), solid_model(False)]
+def test_model_training_outputs_and_gradients_unchanged(step, fast):
+    models = [solid_model(True, fixed_shapes=fast == "fixed_shapes"), solid_model(False)]
     r, target = camera_rays(200, seed=6), torch.rand(200, 3, generator=torch.Generator().manual_seed(7))
     outs, grads = [], []
     for model in models:

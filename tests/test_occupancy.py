@@ -95,6 +95,29 @@ def test_partial_refresh_covers_the_occupied_cells_and_a_random_fraction():
     assert 0.15 < fraction < 0.3
 
 
+def test_partial_refreshes_reach_every_occupied_cell_in_turn_without_reading_back():
+    """More occupied cells than one refresh draws: taken in round robin, every one is refreshed within
+    ``1 / update_fraction`` refreshes, and a refresh reads nothing back from the device."""
+    from nerfpipe.training.opcount import DispatchCounter
+
+    torch.manual_seed(0)
+    grid = OccupancyGridConfig(resolution=16, ema_decay=0.5, update_fraction=0.25).setup(AABB)
+    grid.update(lambda x: torch.where(x[:, 0] < 0.2, 10.0, 1e-6), step_size=0.01)  # 60 % of the cells occupied
+    occupied = grid.binary.clone()
+    assert occupied.sum() > 1024
+    before = grid.density.clone()
+    seen = torch.zeros_like(occupied)
+    for rotation in range(4):
+        value = 100.0 + rotation  # above every decayed density: a refreshed cell holds exactly this
+        with DispatchCounter() as c:
+            grid.update(lambda x: torch.full(x.shape[:1], value), step_size=0.01, rotation=rotation)
+        assert c.syncs == 0, dict(c.sync_ops)
+        refreshed = grid.density == value
+        assert refreshed.sum() <= 2 * 1024 and not refreshed[occupied].all()  # a refresh draws 2 x 1024 rows
+        seen |= refreshed
+    assert seen[occupied].all()
+
+
 def sparse_grid(skip_factor, seed=3):
     """A non-cubic box with sparse occupancy: a small cloud of cells, one corner cell, one cell on a face."""
     aabb = torch.tensor([[-1.0, -0.5, -1.0], [1.0, 0.5, 0.25]])

@@ -289,6 +289,34 @@ def test_depth_loss_and_the_field_behind_the_box_read_nothing_back_from_the_devi
     assert c.syncs == 0, dict(c.sync_ops)
 
 
+def test_a_real_capture_training_step_in_fixed_shapes_reads_back_once():
+    """Issue 13: with the marching in shapes known on the host (CUDA's default), a whole training step of a real
+    capture (box, field behind the box, depth loss, colour corrections, image codes), forward and backward, reads
+    back one thing: the number of samples kept. The field behind the box then renders every ray."""
+    from nerfpipe.training.opcount import DispatchCounter
+
+    model = _model(fixed_shapes=True)
+    model.train()
+    model._step = model.cfg.behind_from  # the field behind the box is on
+    rays, bg = _rays(64, 3), torch.zeros(64, 3)
+    target, depth = torch.rand(64, 3), torch.where(torch.arange(64) % 2 == 0, 3.5, float("nan"))
+
+    def step():
+        out = model.get_outputs(rays, bg)
+        sum(model.get_losses(out, target, depth).values()).backward()
+        return out
+
+    step()  # constants built on the first call
+    with DispatchCounter() as c:
+        out = step()
+    assert {"rgb", "depth"} <= set(model.get_losses(out, target, depth)) and out.num_samples > 0
+    assert dict(c.sync_ops) == {"aten.nonzero": 1}, dict(c.sync_ops)
+    model.cfg.fixed_shapes = False  # the rounds read back more: the count sees them
+    with DispatchCounter() as c:
+        step()
+    assert c.syncs > 2, dict(c.sync_ops)
+
+
 def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():
     from nerfpipe.training.evaluation import fitted_colour_psnr, score
 

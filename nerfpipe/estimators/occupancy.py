@@ -129,6 +129,8 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("density", torch.zeros(r**3))
         self.register_buffer("binary", torch.ones(r**3, dtype=torch.bool))
         self._coarse_cache: "tuple | None" = None
+        self._has_density: "bool | None" = None
+        """Whether :attr:`density` holds a refresh (None: not known yet, read once)."""
         self._span_cache: "dict[tuple, tuple[float, int]]" = {}
 
     @property
@@ -167,31 +169,42 @@ class OccupancyGrid(nn.Module):
     @torch.no_grad()
     def update(
         self, density_fn: Callable[[Tensor], Tensor], step_size: float, full: bool = False, chunk: int = 1 << 19,
-        generator: "torch.Generator | None" = None,
+        generator: "torch.Generator | None" = None, rotation: int = 0,
     ) -> None:
         """Refresh the running density (one jittered point per cell) and the mask: at every cell when
         ``full``, at the first refresh (no density yet) or when ``update_fraction >= 1``, else at a
-        random fraction of the cells and the occupied ones (random draws from ``generator``)."""
-        full = full or self.cfg.update_fraction >= 1 or not bool(self.density.any())
-        cells = None if full else self._cells_to_refresh(generator)
+        random fraction of the cells and the occupied ones (random draws from ``generator``; the occupied ones in
+        round robin, ``rotation`` counting the refreshes: :meth:`_cells_to_refresh`)."""
+        if self._has_density is None:  # read once (a loaded grid), then known on the host
+            self._has_density = bool(self.density.any())
+        full = full or self.cfg.update_fraction >= 1 or not self._has_density
+        cells = None if full else self._cells_to_refresh(generator, rotation)
         pts = self.cell_centers(jitter=True, cells=cells, generator=generator)
         new = torch.cat([density_fn(p).reshape(-1).float() for p in pts.split(chunk)])
         if cells is None:
             self.density.copy_(torch.maximum(self.density * self.cfg.ema_decay, new))
-        else:
-            self.density[cells] = torch.maximum(self.density[cells] * self.cfg.ema_decay, new)
+        else:  # a cell drawn twice decays once and keeps the larger of its new densities
+            decayed = self.density.index_put((cells,), self.density[cells] * self.cfg.ema_decay)
+            self.density.copy_(decayed.scatter_reduce(0, cells, new, "amax"))
+        self._has_density = True
         occ = self.density * step_size
         thre = occ.clamp(min=0).mean().clamp(max=self.cfg.threshold)  # on the device: no read back
         self.binary.copy_(occ > thre)
 
-    def _cells_to_refresh(self, generator: "torch.Generator | None") -> Int[Tensor, "num_refreshed"]:
-        """``update_fraction`` of the cells uniformly at random, and the occupied cells (as many at most)."""
-        n = max(1, int(self.binary.numel() * self.cfg.update_fraction))
-        uniform = torch.randint(self.binary.numel(), (n,), device=self.binary.device, generator=generator)
-        occupied = self.binary.nonzero()[:, 0]
-        if len(occupied) > n:
-            occupied = occupied[torch.randint(len(occupied), (n,), device=occupied.device, generator=generator)]
-        return torch.cat([uniform, occupied]).unique()
+    def _cells_to_refresh(self, generator: "torch.Generator | None", rotation: int) -> Int[Tensor, "num_refreshed"]:
+        """``update_fraction`` of the cells uniformly at random, and as many occupied cells at most: all of them
+        when there are fewer, else the first ones in row order from row ``rotation * n`` on (round robin over
+        the refreshes: every occupied cell is drawn at least once in ``1 / update_fraction`` of them). The rows are
+        a fixed number (a cell may come twice; where there are fewer occupied cells, the uniform ones fill in): no
+        shape depends on the data and nothing is read back."""
+        total = self.binary.numel()
+        n = max(1, int(total * self.cfg.update_fraction))
+        uniform = torch.randint(total, (n,), device=self.binary.device, generator=generator)
+        start = rotation * n % total
+        rolled = torch.roll(self.binary, -start)
+        occupied = (torch.nonzero_static(rolled, size=n, fill_value=0)[:, 0] + start) % total
+        found = torch.arange(n, device=uniform.device) < rolled.sum()
+        return torch.cat([uniform, torch.where(found, occupied, uniform)])
 
     def occupied_aabb(self) -> Float[Tensor, "2 3"]:
         """The smallest box around the occupied cells (the whole box when none is), computed on the device:
@@ -209,7 +222,9 @@ class OccupancyGrid(nn.Module):
         return torch.where(occ.any(), box, self.aabb)
 
     def _limits(self, origins, directions, near, far, step_size, jitter, aabb, generator=None) -> "_Limits":
-        box = self.aabb if aabb is None else aabb
+        # a march box is clipped to the grid's box (outside it no cell is occupied), so the grid's diagonal bounds
+        # every ray's span: read once per grid box, not once per march box (which changes at every refresh)
+        box = self.aabb if aabb is None else torch.stack([torch.maximum(aabb[0], self.aabb[0]), torch.minimum(aabb[1], self.aabb[1])])
         t0, t1 = ray_aabb_intersect(origins, directions, box)
         t0, t1 = t0.clamp(min=near), t1.clamp(max=far)
         n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
@@ -230,18 +245,26 @@ class OccupancyGrid(nn.Module):
             self._coarse_cache = (key, coarse.reshape(-1) > 0, coarse.shape[-1])
         return self._coarse_cache[1], self._coarse_cache[2]
 
-    def _coarse_steps(self, box: Float[Tensor, "2 3"]) -> "tuple[float, int]":
-        """The coarse step ``h`` and the most coarse samples a unit ray can take through ``box`` (its diagonal
-        over ``h``, with a margin for rounding); read from the device once per box (it changes at refreshes)."""
-        key = (self.aabb.data_ptr(), self.aabb._version, box.data_ptr(), box._version)
+    def _grid_box(self) -> "tuple[float, float]":
+        """The smallest side of a cell and the diagonal of the grid's box, read from the device once per box (it
+        changes when the box is tightened): every marched box lies in it (:meth:`_limits`)."""
+        key = (self.aabb.data_ptr(), self.aabb._version)
         if key not in self._span_cache:
-            if len(self._span_cache) > 8:
-                self._span_cache.clear()
-            grid, marched = torch.stack([self.aabb, box.to(self.aabb)]).detach().cpu()  # one read for both
-            h = float(((grid[1] - grid[0]) / self.cfg.resolution).min()) * self.cfg.skip_factor
-            diagonal = float((marched[1] - marched[0]).norm())
-            self._span_cache[key] = h, max(int(math.ceil(diagonal / h * 1.001)) + 2, 1)
+            self._span_cache.clear()
+            grid = self.aabb.detach().cpu()
+            self._span_cache[key] = float(((grid[1] - grid[0]) / self.cfg.resolution).min()), float((grid[1] - grid[0]).norm())
         return self._span_cache[key]
+
+    def _coarse_steps(self) -> "tuple[float, int]":
+        """The coarse step ``h`` and the most coarse samples a unit ray can take through the grid's box (its
+        diagonal over ``h``, with a margin for rounding)."""
+        cell, diagonal = self._grid_box()
+        h = cell * self.cfg.skip_factor
+        return h, max(int(math.ceil(diagonal / h * 1.001)) + 2, 1)
+
+    def max_intervals(self, step_size: float) -> int:
+        """The most intervals of ``step_size`` a unit ray can have in the grid's box (known on the host)."""
+        return int(math.ceil(self._grid_box()[1] / step_size * 1.001)) + 2
 
     def _occupied_span(self, lim: "_Limits", chunk: int = 1 << 21) -> "tuple[Tensor, Tensor]":
         """First and last interval of each ray that can meet an occupied cell.
@@ -256,7 +279,7 @@ class OccupancyGrid(nn.Module):
         """
         coarse, rc = self._coarse()
         f = self.cfg.skip_factor
-        h, n_max = self._coarse_steps(lim.box)
+        h, n_max = self._coarse_steps()
         n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0, max=n_max).long()
         j = torch.arange(n_max, device=n.device)
         j_first, j_last, hit_any = [], [], []
@@ -339,6 +362,7 @@ class OccupancyGrid(nn.Module):
         aabb: "Float[Tensor, '2 3'] | None" = None,
         rounds: "Rounds | None" = None,
         generator: "torch.Generator | None" = None,
+        fixed_shapes: bool = False,
     ) -> "tuple[PackedSamples, Float[Tensor, 'num_samples']]":
         """:meth:`march` then :func:`~nerfpipe.functional.packed.prune_mask`, with early ray termination.
 
@@ -352,12 +376,17 @@ class OccupancyGrid(nn.Module):
             min_transmittance: keep samples whose transmittance exceeds this.
             min_alpha: keep only samples more opaque than this (``None``: no alpha test).
             rounds: samples per ray and round (default :class:`Rounds`).
+            fixed_shapes: instead of rounds, march every ray over the longest span the grid's box allows and
+                evaluate the density at every interval at once, in shapes known on the host; the kept samples
+                are then packed by one ``nonzero``, the only read back (for a GPU: see :meth:`_until_opaque_fixed`).
 
         Returns:
             The kept samples, as ``prune_mask`` selects them from :meth:`march` (equal up to the
             order of floating-point sums), and their densities.
         """
         lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator)
+        if fixed_shapes:
+            return self._until_opaque_fixed(lim, sigma_fn, min_transmittance, min_alpha)
         state = _RayState.start(lim)
         rounds = rounds or Rounds()
         kept, n = [], 0
@@ -370,6 +399,36 @@ class OccupancyGrid(nn.Module):
             state = _RayState.cat([p[1] for p in parts])
             n += 1
         return _sorted_by_ray(kept, origins)
+
+    def _until_opaque_fixed(self, lim: _Limits, sigma_fn, min_transmittance: float, min_alpha: "float | None", chunk: int = 1 << 22):
+        """:meth:`march_until_opaque` in shapes known on the host: each ray's intervals ``first .. first + S - 1``
+        (``S`` = :meth:`max_intervals`, the longest span a ray can have in the grid's box) are marched and their
+        densities evaluated all at once (the empty ones masked), the transmittance in front of each is an exclusive
+        cumulative sum along the row, and one ``nonzero`` packs the samples kept. The rounds' read backs (a
+        ``nonzero`` for the samples and one for the rays still alive in each round) are gone; the price is a
+        density at every interval of the span, which a GPU pays in parallel and a CPU pays in full (there the rounds
+        are faster: :attr:`nerfpipe.models.fast.FastConfig.fixed_shapes`)."""
+        num_rays, span = lim.origins.shape[0], self.max_intervals(lim.step_size)
+        device = lim.origins.device
+        k = torch.arange(span, device=device)
+        valid, t_starts, t_ends, sigma = [], [], [], []
+        for s in range(0, num_rays, max(1, chunk // span)):
+            rays = torch.arange(s, min(s + max(1, chunk // span), num_rays), device=device)
+            ks = lim.first[rays, None] + k
+            v, t0, t1 = self._intervals(lim, rays, ks.to(lim.t0.dtype))
+            v &= ks <= lim.last[rays, None]
+            every = PackedSamples(rays[:, None].expand_as(ks).reshape(-1), t0.reshape(-1), t1.reshape(-1), num_rays)
+            sigma.append(torch.where(v, sigma_fn(every).view(v.shape), 0.0))
+            valid.append(v), t_starts.append(t0), t_ends.append(t1)
+        valid, t_starts, t_ends, sigma = (torch.cat(t) for t in (valid, t_starts, t_ends, sigma))
+        thickness = torch.where(valid, optical_thickness(sigma, (t_ends - t_starts).clamp(min=0)), 0.0)
+        before = torch.cumsum(thickness.double(), dim=1) - thickness.double()
+        _, trans = weights_from_thickness(thickness, before)
+        keep = valid & (trans > min_transmittance)
+        if min_alpha is not None:
+            keep &= more_opaque_than(sigma.reshape(-1), (t_ends - t_starts).reshape(-1), min_alpha).view(keep.shape)
+        row, col = keep.nonzero(as_tuple=True)  # the one read back: how many samples there are
+        return PackedSamples(row, t_starts[row, col], t_ends[row, col], num_rays), sigma[row, col]
 
     def _round(self, lim, state, sigma_fn, k_max, steps, min_transmittance, min_alpha):
         """March ``steps`` intervals of the rays in ``state``, evaluate the first ``k_max`` occupied ones."""

@@ -216,6 +216,11 @@ class FastConfig:
     early_termination: bool = True
     """Evaluate the density-only pass in rounds and stop each ray once opaque (False: evaluate every
     marched sample; the same samples are kept either way)."""
+    fixed_shapes: "bool | None" = None
+    """Train without host syncs but one per step: the density-only pass marches every ray over the longest span
+    the box allows in shapes known on the host (``OccupancyGrid.march_until_opaque(fixed_shapes=True)``; the same
+    samples are kept), and the field behind the box is computed for every ray. Default: on CUDA, where each read
+    back stalls the GPU; off on the CPU, where the rounds evaluate fewer densities and a read back costs nothing."""
     learned_background: "bool | None" = None
     """Learn the colour behind the box per viewing direction (default: for scenes without alpha, where
     the photographs show more than the box, e.g. COLMAP captures); otherwise the trainer's background."""
@@ -408,8 +413,14 @@ class FastModel(Model):
 
         return self.grid.march_until_opaque(
             *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box,
-            generator=self.generator,
+            generator=self.generator, fixed_shapes=self._fixed_shapes(rays),
         )
+
+    def _fixed_shapes(self, rays: RayBundle) -> bool:
+        """Whether this training step runs in shapes known on the host (:attr:`FastConfig.fixed_shapes`; rendering
+        never does: it marches many more rays, whose longest span would not fit)."""
+        fixed = rays.origins.device.type == "cuda" if self.cfg.fixed_shapes is None else self.cfg.fixed_shapes
+        return fixed and self.training
 
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
         shape = rays.shape
@@ -457,17 +468,25 @@ class FastModel(Model):
     def _behind(self, rays: RayBundle, dir_code, t_exit, bg, acc, extras: dict, codes=None) -> Float[Tensor, "num_rays 3"]:
         """The colour behind the box for every ray, computed only where the box lets ``BEHIND_SEEN`` of it
         through (``acc``: the box's opacity); the others keep ``bg``, which they do not show."""
+        if self._fixed_shapes(rays):  # every ray: which ones the box lets through would be read back
+            behind = self.behind(rays.origins, rays.directions, dir_code, t_exit, bg, generator=self.generator, codes=codes)
+            self._behind_extras(behind, extras)
+            return behind.rgb
         seen = ((1.0 - acc.detach()) > BEHIND_SEEN).nonzero()[:, 0]
         if len(seen) == 0:
             return bg
         sub = rays[seen]
         behind = self.behind(sub.origins, sub.directions, dir_code[seen], t_exit[seen], bg[seen], generator=self.generator,
                              codes=None if codes is None else codes[seen])
+        self._behind_extras(behind, extras)
+        return bg.index_put((seen,), behind.rgb)
+
+    @staticmethod
+    def _behind_extras(behind, extras: dict) -> None:
         if behind.distortion is not None:
             extras["behind_distortion"] = behind.distortion.mean()
         if behind.proposal is not None:
             extras["behind_proposal"] = behind.proposal.mean()
-        return bg.index_put((seen,), behind.rgb)
 
     def _behind_start(self, rays: RayBundle) -> Float[Tensor, "num_rays"]:
         """Where each ray leaves the object region (rays that miss it: the near bound)."""
@@ -599,7 +618,7 @@ class FastModel(Model):
         self.active_levels.fill_(self.field.active_levels)
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
-            self.grid.update(self.field.density, self.step_size, generator=self.generator)
+            self.grid.update(self.field.density, self.step_size, generator=self.generator, rotation=step // occ.update_every)
             self.march_box.copy_(self.grid.occupied_aabb())
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
@@ -626,7 +645,7 @@ class FastModel(Model):
         self.field.aabb.copy_(box)
         self.grid.aabb.copy_(box)
         self.grid.density.zero_()
-        self.grid.update(self.field.density, self.step_size, generator=self.generator)
+        self.grid.update(self.field.density, self.step_size, full=True, generator=self.generator)
         self.march_box.copy_(self.grid.occupied_aabb())
 
     @staticmethod
