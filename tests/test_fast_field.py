@@ -94,6 +94,46 @@ def test_hashed_corners_match_the_one_vertex_reference():
     assert torch.autograd.gradcheck(grid_gather, (table, idx[:6], w[:6].clone().requires_grad_()))
 
 
+def test_corners_of_several_levels_at_once_equal_each_levels_own(device):
+    """The batched corners (one pass for the dense levels, one for the hashed ones) are each level's
+    :func:`trilinear_corners`, bit for bit, and in fewer tensor operations."""
+    from nerfpipe.training.opcount import DispatchCounter
+
+    enc = DenseGridEncoding([(4, 5, 6), (8, 8, 9), (16, 12, 16), (33, 20, 31)], channels=2, max_rows=1024).to(device)
+    assert enc.hash_rows == [None, None, 1024, 1024]
+    x, x_lat = points(50, torch.float32).to(device), points(50, torch.float32).to(device) * 1.1 - 0.05
+    got = enc.corners_of(4, x, x_lat)
+    want = [enc.corners(lv, x if enc.hash_rows[lv] is None else x_lat) for lv in range(4)]
+    for (gi, gw), (wi, ww) in zip(got, want, strict=True):
+        assert torch.equal(gi, wi) and torch.equal(gw, ww)
+    assert [len(c) for c in enc.corners_of(3, x, x_lat)] == [2, 2, 2]
+    enc.corners_of(4, x, x_lat), enc.corners(0, x)  # constants built
+    with DispatchCounter() as batched:
+        enc.corners_of(4, x, x_lat)
+    with DispatchCounter() as each:
+        [enc.corners(lv, x) for lv in range(4)]
+    assert batched.ops < 0.7 * each.ops, (batched.ops, each.ops)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_direction_encoding_matches_the_written_out_harmonics_values_and_gradients(dtype, device):
+    from nerfpipe.fields.fast_field import direction_encoding, direction_encoding_reference
+
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=dtype), dim=-1)
+    d = torch.cat([d, torch.eye(3, dtype=dtype), -torch.eye(3, dtype=dtype)]).to(device).requires_grad_()  # the poles too
+    got, want = direction_encoding(d), direction_encoding_reference(d)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+    up = torch.randn(got.shape, generator=g, dtype=dtype).to(device)
+    (ga,), (gb,) = torch.autograd.grad(got, d, up), torch.autograd.grad(want, d, up)
+    torch.testing.assert_close(ga, gb, rtol=10 * tol, atol=10 * tol)
+    # orthonormal on the sphere: the mean of Y_i Y_j over many directions is delta_ij / (4 pi)
+    many = torch.nn.functional.normalize(torch.randn(200_000, 3, generator=g, dtype=torch.float64), dim=-1)
+    gram = direction_encoding(many).T @ direction_encoding(many) / len(many) * 4 * torch.pi
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
+
+
 def test_levels_hash_only_above_the_row_budget():
     enc = DenseGridEncoding([(4, 4, 4), (8, 8, 8), (16, 16, 16)], channels=3, max_rows=512)
     assert enc.hash_rows == [None, None, 512] and [t.shape[0] for t in enc.tables] == [64, 512, 512]

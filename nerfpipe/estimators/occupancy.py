@@ -221,7 +221,7 @@ class OccupancyGrid(nn.Module):
         box = torch.stack([self.aabb[0] + torch.stack(lo) * cell, self.aabb[0] + torch.stack(hi) * cell])
         return torch.where(occ.any(), box, self.aabb)
 
-    def _limits(self, origins, directions, near, far, step_size, jitter, aabb, generator=None) -> "_Limits":
+    def _limits(self, origins, directions, near, far, step_size, jitter, aabb, generator=None, span: bool = True) -> "_Limits":
         # a march box is clipped to the grid's box (outside it no cell is occupied), so the grid's diagonal bounds
         # every ray's span: read once per grid box, not once per march box (which changes at every refresh)
         box = self.aabb if aabb is None else torch.stack([torch.maximum(aabb[0], self.aabb[0]), torch.minimum(aabb[1], self.aabb[1])])
@@ -230,7 +230,7 @@ class OccupancyGrid(nn.Module):
         n_steps = ((t1 - t0) / step_size).ceil().clamp(min=0).long()
         offset = torch.rand(t0.shape, dtype=t0.dtype, device=t0.device, generator=generator) if jitter else torch.zeros_like(t0)
         lim = _Limits(origins, directions, t0, t1, offset, step_size, box, torch.zeros_like(n_steps), n_steps)
-        if self.cfg.skip_factor > 1 and n_steps.numel():
+        if span and self.cfg.skip_factor > 1 and n_steps.numel():
             lim.first, lim.last = self._occupied_span(lim)
         return lim
 
@@ -384,7 +384,8 @@ class OccupancyGrid(nn.Module):
             The kept samples, as ``prune_mask`` selects them from :meth:`march` (equal up to the
             order of floating-point sums), and their densities.
         """
-        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator)
+        # in fixed shapes every ray is marched over the longest span anyway: the coarse skipping would save nothing
+        lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator, span=not fixed_shapes)
         if fixed_shapes:
             return self._until_opaque_fixed(lim, sigma_fn, min_transmittance, min_alpha)
         state = _RayState.start(lim)

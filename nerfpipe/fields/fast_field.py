@@ -10,6 +10,7 @@ Glossary:
     raw   density before activation
 """
 
+import functools
 import math
 
 import torch
@@ -19,8 +20,49 @@ from nerfpipe.fields.grid import DenseGridEncoding, grid_gather
 from nerfpipe.util.typing import Float, Tensor
 
 
+# Real spherical harmonics of degree <= 3 as polynomials in (x, y, z): per basis function, its terms as
+# (coefficient, the monomial's factors among 0 = 1, 1 = x, 2 = y, 3 = z, three of them)
+_SH_TERMS = (
+    ((0.28209479177387814, (0, 0, 0)),),
+    ((-0.48860251190291987, (0, 0, 2)),),
+    ((0.48860251190291987, (0, 0, 3)),),
+    ((-0.48860251190291987, (0, 0, 1)),),
+    ((1.0925484305920792, (0, 1, 2)),),
+    ((-1.0925484305920792, (0, 2, 3)),),
+    ((0.94617469575755997, (0, 3, 3)), (-0.31539156525251999, (0, 0, 0))),
+    ((-1.0925484305920792, (0, 1, 3)),),
+    ((0.54627421529603959, (0, 1, 1)), (-0.54627421529603959, (0, 2, 2))),
+    ((-3 * 0.59004358992664352, (1, 1, 2)), (0.59004358992664352, (2, 2, 2))),
+    ((2.8906114426405538, (1, 2, 3)),),
+    ((0.45704579946446572, (0, 0, 2)), (-5 * 0.45704579946446572, (2, 3, 3))),
+    ((5 * 0.3731763325901154, (3, 3, 3)), (-3 * 0.3731763325901154, (0, 0, 3))),
+    ((0.45704579946446572, (0, 0, 1)), (-5 * 0.45704579946446572, (1, 3, 3))),
+    ((1.4453057213202769, (1, 1, 3)), (-1.4453057213202769, (2, 2, 3))),
+    ((-0.59004358992664352, (1, 1, 1)), (3 * 0.59004358992664352, (1, 2, 2))),
+)
+
+
+@functools.lru_cache(maxsize=16)
+def _sh_matrix(dtype: torch.dtype, device: torch.device) -> Float[Tensor, "64 16"]:
+    """The basis functions' coefficients over the 64 products ``m_a m_b m_c`` of ``m = (1, x, y, z)`` (built once)."""
+    out = torch.zeros(64, 16, dtype=torch.float64)
+    for j, terms in enumerate(_SH_TERMS):
+        for coef, (a, b, c) in terms:
+            out[a * 16 + b * 4 + c, j] += coef
+    return out.to(dtype=dtype, device=device)
+
+
 def direction_encoding(d: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 16"]:
-    """Real spherical harmonics of degree <= 3 of unit directions (instant-ngp's colour input)."""
+    """Real spherical harmonics of degree <= 3 of unit directions (instant-ngp's colour input), as one product
+    of the monomials of degree <= 3 with a constant matrix: a handful of tensor operations (each a kernel launch
+    on a GPU) instead of one per term. :func:`direction_encoding_reference` writes the functions out."""
+    m = nn.functional.pad(d, (1, 0), value=1.0)  # [N, 4]: 1, x, y, z
+    cubic = (m[:, :, None, None] * m[:, None, :, None] * m[:, None, None, :]).reshape(-1, 64)
+    return cubic @ _sh_matrix(d.dtype, d.device)
+
+
+def direction_encoding_reference(d: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 16"]:
+    """:func:`direction_encoding`, each basis function written out (the slow, obvious reference)."""
     x, y, z = d.unbind(-1)
     xx, yy, zz = x * x, y * y, z * z
     return torch.stack(
@@ -97,15 +139,9 @@ class FastField(nn.Module):
     def corners(self, points: Float[Tensor, "num_points 3"], levels: "int | None" = None) -> list:
         """Trilinear corners of every active level (shared by the density and feature reads), or of the coarsest
         ``levels`` of them."""
-        grid = self.density_grid
-        x01 = self.normalize(points)
-        x_lat = None
-        out = []
-        for level in range(self.active_levels if levels is None else min(levels, self.active_levels)):
-            if self.hashed(level) and x_lat is None:
-                x_lat = (points - self.lattice[0]) / (self.lattice[1] - self.lattice[0])
-            out.append(grid.corners(level, x_lat if self.hashed(level) else x01))
-        return out
+        n = self.active_levels if levels is None else min(levels, self.active_levels)
+        x_lat = (points - self.lattice[0]) / (self.lattice[1] - self.lattice[0]) if any(map(self.hashed, range(n))) else None
+        return self.density_grid.corners_of(n, self.normalize(points), x_lat)
 
     def voxel_size(self, level: int) -> float:
         """Smallest vertex spacing of a level, in scene units (read from the box once per box: it is asked

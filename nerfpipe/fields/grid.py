@@ -36,16 +36,18 @@ HASH_PRIMES = (2654435761, 805459861, 1)
 
 
 @functools.lru_cache(maxsize=256)
-def _level_constants(res: "tuple[int, int, int]", dtype: torch.dtype, device: torch.device) -> "tuple[Tensor, Tensor, Tensor, Tensor]":
-    """The constant tensors of a level's corner computation, built once per resolution, dtype and device
-    (built on every call, each would be a blocking host-to-device copy on CUDA): the last vertex index per
-    axis, the dense layout's row strides and corner offsets, and the hashing primes."""
-    ry, rz = res[1], res[2]
-    size = torch.tensor(res, dtype=dtype, device=device) - 1
-    strides = torch.tensor([ry * rz, rz, 1], device=device)
-    offsets = torch.tensor([(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS], device=device)
+def _level_constants(
+    resolutions: "tuple[tuple[int, int, int], ...]", dtype: torch.dtype, device: torch.device
+) -> "tuple[Tensor, Tensor, Tensor, Tensor, Tensor]":
+    """The constant tensors of the corner computation of some levels (``[L, 1, ...]``: a level per row), built once
+    per resolutions, dtype and device (built on every call, each would be a blocking host-to-device copy on CUDA):
+    the last vertex index per axis, the last cell's lower corner, the dense layout's row strides and corner
+    offsets, and the hashing primes."""
+    size = torch.tensor(resolutions, dtype=dtype, device=device)[:, None, :] - 1
+    strides = torch.tensor([[ry * rz, rz, 1] for _, ry, rz in resolutions], device=device)[:, None, :]
+    offsets = torch.tensor([[(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS] for _, ry, rz in resolutions], device=device)[:, None, :]
     primes = torch.tensor(HASH_PRIMES, device=device)
-    return size, strides, offsets, primes
+    return size, (size - 1).clamp(min=0), strides, offsets, primes
 
 
 def trilinear_corners(
@@ -56,26 +58,36 @@ def trilinear_corners(
     Points outside the unit cube are clamped to its surface. ``rows``: the table's rows when the
     level is hashed (a power of two below the vertex count), else None.
     """
-    size, strides, offsets, primes = _level_constants(tuple(res), x01.dtype, x01.device)
-    pos = x01.clamp(0.0, 1.0) * size
-    lo = torch.minimum(pos.floor(), (size - 1).clamp(min=0))
+    idx, w = trilinear_corners_levels(x01, (tuple(res),), rows)
+    return idx[0], w[0]
+
+
+def trilinear_corners_levels(
+    x01: Float[Tensor, "num_points 3"], resolutions: "tuple[tuple[int, int, int], ...]", rows: "int | None" = None
+) -> "tuple[Int[Tensor, 'levels num_points 8'], Float[Tensor, 'levels num_points 8']]":
+    """:func:`trilinear_corners` of several levels at the same points at once (level ``l`` in row ``l``; all
+    dense, or all hashed into tables of ``rows`` rows): one pass of a few dozen tensor operations for all of them,
+    not one per level (on a GPU each is a kernel launch)."""
+    size, last, strides, offsets, primes = _level_constants(tuple(tuple(r) for r in resolutions), x01.dtype, x01.device)
+    pos = x01.clamp(0.0, 1.0) * size  # [L, N, 3]
+    lo = torch.minimum(pos.floor(), last)
     frac = pos - lo
-    w1 = torch.stack([1 - frac, frac], dim=-1)  # [N, 3, 2]
-    w = (w1[:, 0, :, None, None] * w1[:, 1, None, :, None] * w1[:, 2, None, None, :]).reshape(-1, 8)
+    w1 = torch.stack([1 - frac, frac], dim=-1)  # [L, N, 3, 2]
+    w = (w1[..., 0, :, None, None] * w1[..., 1, None, :, None] * w1[..., 2, None, None, :]).flatten(-3)
     if rows is not None:
         return hashed_rows(lo.long(), rows, primes), w
     base = (lo.long() * strides).sum(-1)
-    return base[:, None] + offsets, w
+    return base[..., None] + offsets, w
 
 
-def hashed_rows(lo: Int[Tensor, "num_points 3"], rows: int, primes: "Int[Tensor, '3'] | None" = None) -> Int[Tensor, "num_points 8"]:
+def hashed_rows(lo: Int[Tensor, "*bs 3"], rows: int, primes: "Int[Tensor, '3'] | None" = None) -> Int[Tensor, "*bs 8"]:
     """Hashed table rows of the eight vertices ``lo + (di, dj, dk)`` (in the order of ``_CORNERS``);
     ``primes``: :data:`HASH_PRIMES` as a tensor on ``lo``'s device (default: built here)."""
     if primes is None:
         primes = torch.tensor(HASH_PRIMES, device=lo.device)
-    terms = torch.stack([lo, lo + 1], dim=-1) * primes[:, None]  # [N, 3, 2]
-    h = terms[:, 0, :, None, None] ^ terms[:, 1, None, :, None] ^ terms[:, 2, None, None, :]
-    return h.reshape(-1, 8) & (rows - 1)
+    terms = torch.stack([lo, lo + 1], dim=-1) * primes[:, None]  # [*bs, 3, 2]
+    h = terms[..., 0, :, None, None] ^ terms[..., 1, None, :, None] ^ terms[..., 2, None, None, :]
+    return h.flatten(-3) & (rows - 1)
 
 
 def hashed_row_reference(i: int, j: int, k: int, rows: int) -> int:
@@ -135,6 +147,20 @@ class DenseGridEncoding(nn.Module):
     def corners(self, level: int, x01: Float[Tensor, "num_points 3"]) -> "tuple[Tensor, Tensor]":
         """:func:`trilinear_corners` of one level (hashed or dense)."""
         return trilinear_corners(x01, self.resolutions[level], self.hash_rows[level])
+
+    def corners_of(
+        self, levels: int, x01: Float[Tensor, "num_points 3"], x_hashed: "Float[Tensor, 'num_points 3'] | None" = None
+    ) -> "list[tuple[Tensor, Tensor]]":
+        """:meth:`corners` of the coarsest ``levels`` levels, the dense ones at ``x01`` together and the hashed ones
+        at ``x_hashed`` (default ``x01``) together (:func:`trilinear_corners_levels`), in level order."""
+        out: "list[tuple[Tensor, Tensor] | None]" = [None] * levels
+        for rows in dict.fromkeys(self.hash_rows[:levels]):
+            group = [lv for lv in range(levels) if self.hash_rows[lv] == rows]
+            x = x01 if rows is None or x_hashed is None else x_hashed
+            idx, w = trilinear_corners_levels(x, tuple(self.resolutions[lv] for lv in group), rows)
+            for i, lv in enumerate(group):
+                out[lv] = (idx[i], w[i])
+        return out  # type: ignore[return-value]
 
     @property
     def out_dim(self) -> int:
