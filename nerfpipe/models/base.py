@@ -117,6 +117,10 @@ class Model(nn.Module):
         """Hooks by place, each called with the step number (e.g. occupancy-grid updates)."""
         return {}
 
+    def parameters_replaced(self) -> None:
+        """Called after the trainer replaced the parameters (their average at the end of training): rebuild
+        whatever was derived from them (e.g. an occupancy grid). Default: nothing."""
+
     def param_groups(self) -> "list[dict]":
         """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]

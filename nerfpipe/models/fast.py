@@ -623,6 +623,13 @@ class FastModel(Model):
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
 
+    @torch.no_grad()
+    def parameters_replaced(self) -> None:
+        """The occupancy grid and the marching box from the new field: every cell refreshed, its running density kept
+        (an average of the parameters holds no density where the last steps had none)."""
+        self.grid.update(self.field.density, self.step_size, full=True, generator=self.generator)
+        self.march_box.copy_(self.grid.occupied_aabb())
+
     def lr_factor(self, step: int) -> float:
         """Exponential decay: tenfold every ``lr_decay_steps``, floored at ``lr_min_factor``."""
         if not self.cfg.lr_decay_steps:

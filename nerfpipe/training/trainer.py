@@ -36,6 +36,7 @@ from nerfpipe.data.scene import SceneData, check_images
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.training import distributed
+from nerfpipe.training.averaging import ParameterAverage
 from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.training.pixel_sampler import PixelSampler
 from nerfpipe.training.runs import CONFIG, load_model_state, to_dict, write_json
@@ -97,6 +98,16 @@ class TrainerConfig:
     colmap_mouse it loses at equal steps too (-0.26 dB after 600: rays leave the object the field has
     learnt for surroundings it cannot). Where a step's time does not grow with its samples (a GPU bound
     by kernel launches), its gain per step is the gain."""
+    average: "bool | None" = None
+    """Evaluate and save the parameters averaged over the late steps (:mod:`nerfpipe.training.averaging`: an
+    exponential moving average from step ``average_from`` on, warm-started uniform) instead of the last step's.
+    Default: for real captures (``SceneInfo.unbounded``), whose held-out views stop improving while the training
+    views rise (colmap_mouse after 600 / 800 / 1,000 steps: 24.53 / 24.54 / 24.49 dB against 24.41 / 24.39 /
+    24.31); off for synthetic scenes."""
+    average_from: int = 256
+    """First step of the parameter average."""
+    average_decay: float = 0.995
+    """Decay of the parameter average per step (the last ~``1 / (1 - decay)`` steps weigh most)."""
     error_tiles: int = 16384
     """About how many tiles the error map cuts the training images into (square tiles, at least 4 pixels wide)."""
     track_rays: int = 512
@@ -168,6 +179,7 @@ class TrainerConfig:
             ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
             ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
             ("eval_supersample", 1 <= self.eval_supersample <= 8, "1 to 8"),
+            ("average_from", self.average_from >= 0, "0 or more"), ("average_decay", 0 <= self.average_decay < 1, "at least 0 and below 1"),
             ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
             ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
@@ -255,6 +267,9 @@ class Trainer:
         self._losses: "list[tuple[int, float, Tensor]]" = []  # (step, seconds, MSE on the device) not yet in history
         self._logged_at = 0.0  # perf_counter of the latest flush_losses
         self.hooks = self.model.callbacks()
+        info = scene_info(scene, cfg.train_max_size)
+        self.average = ParameterAverage(self.model, cfg.average_from, cfg.average_decay) if (info.unbounded if cfg.average is None else cfg.average) else None
+        """The running average of the parameters that the run ends with (None: the last step's)."""
         self.seconds_per_pixel: "float | None" = None  # per ray of the latest validation render
         self.final_eval_rays: "int | None" = None  # rays of the final evaluation of every view, one per pixel (counted once)
         self.stopping_window: "float | None" = None  # the training window when training stopped
@@ -273,6 +288,7 @@ class Trainer:
             "sampler_rng": self.generator.get_state(),
             "history": self.history,
             **({"error_map": self.sampler.errors.state()} if self.sampler.errors is not None else {}),
+            **({"average": self.average.state()} if self.average is not None else {}),
         }
 
     def resume_from(self, path: Path) -> None:
@@ -304,6 +320,8 @@ class Trainer:
                 self.sampler.errors.load_state(ranks["error_map"][self.world.rank].clone().view(torch.float32))
         if self.sampler.errors is not None and "error_map" in state and "error_map" not in ranks:
             self.sampler.errors.load_state(state["error_map"])  # a checkpoint of one process
+        if self.average is not None and "average" in state:  # (a checkpoint without: the average starts anew)
+            self.average.load_state(state["average"])
         self.step, self.train_seconds, self.history = state["step"], state["train_seconds"], state["history"]
         self.history["resumed_at"] = [*self.history.get("resumed_at", []), self.step]
 
@@ -357,6 +375,8 @@ class Trainer:
         if self.sync is not None:
             self.sync.mark()
         self.step += 1
+        if self.average is not None:
+            self.average.update(self.step)
         self.fire(Callback.AFTER_TRAIN_ITERATION)
         return mse
 
@@ -449,6 +469,8 @@ class Trainer:
         self.flush_losses(bar)
         self.training_stopped_at = self.wall_elapsed()
         self.stopping_window = self.training_window()
+        if self.average is not None and self.average.apply():  # the run ends with the averaged parameters
+            self.model.parameters_replaced()
         self.fire(Callback.AFTER_TRAIN)
         self.save()
         self.final_started_at = self.wall_elapsed()

@@ -1,0 +1,77 @@
+"""An average of a model's parameters over the late training steps, which the run evaluates and saves.
+
+On a real capture the held-out views stop improving after a few hundred steps while the training views keep
+rising: each step fits the sampled rays' noise and the views' disagreements a little, and the parameters wander
+around a better solution (colmap_mouse, 7 held-out views: 24.41 / 24.39 / 24.31 dB after 600 / 800 / 1,000 steps).
+Their exponential moving average from step 256 on, uniform over its first ``1 / (1 - decay)`` steps (Polyak
+averaging with a warm start), scored 24.53 / 24.54 / 24.49 dB at the same steps. The average costs one fused
+``lerp`` over the parameters per step and a copy of them; it is saved in checkpoints (a resumed run goes on
+exactly) and replaces the parameters when training ends, before the final evaluation, the checkpoint and
+everything rendered from it; that checkpoint keeps the last step's parameters too, so a run resumed from it to
+train further goes on from them (the occupancy grid it refreshed from the average stays).
+"""
+
+import torch
+from torch import nn
+
+from nerfpipe.util.typing import Tensor
+
+
+class ParameterAverage:
+    """The running average of ``model``'s parameters from step ``start`` on.
+
+    Args:
+        model: whose parameters are averaged (by name; a parameter whose shape changes, a grid resampled to a
+            tightened box, restarts the average).
+        start: the first step (the trainer's count after the step) that enters the average.
+        decay: weight of the average so far in each update once past the warm start (``1 - decay`` is the new
+            step's weight, never less than ``1 / count``: the first ``1 / (1 - decay)`` steps count alike).
+    """
+
+    def __init__(self, model: nn.Module, start: int, decay: float) -> None:
+        self.start, self.decay = start, decay
+        self.params = dict(model.named_parameters())
+        self.values: "dict[str, Tensor] | None" = None
+        self.count = 0
+        self.last: "dict[str, Tensor] | None" = None
+        """The last step's parameters once :meth:`apply` replaced them (saved, so training can go on from them)."""
+
+    @torch.no_grad()
+    def update(self, step: int) -> None:
+        """Add the parameters after training step ``step`` (nothing before :attr:`start`)."""
+        if step < self.start:
+            return
+        if self.values is None or any(v.shape != self.params[k].shape for k, v in self.values.items()):
+            self.values, self.count = {k: p.detach().clone() for k, p in self.params.items()}, 1
+            return
+        self.count += 1
+        weight = max(1.0 - self.decay, 1.0 / self.count)
+        torch._foreach_lerp_(list(self.values.values()), [p.detach() for p in self.params.values()], weight)
+
+    @torch.no_grad()
+    def apply(self) -> bool:
+        """Copy the average into the parameters; False (nothing changed) when there is none yet."""
+        if self.values is None:
+            return False
+        self.last = {k: p.detach().clone() for k, p in self.params.items()}
+        for k, v in self.values.items():
+            self.params[k].copy_(v)
+        return True
+
+    def state(self) -> dict:
+        out = {"count": self.count, "values": {} if self.values is None else {k: v.detach() for k, v in self.values.items()}}
+        return out if self.last is None else {**out, "last": self.last}
+
+    @torch.no_grad()
+    def load_state(self, state: dict) -> None:
+        """The average of a checkpoint; one written after :meth:`apply` also puts the last step's parameters back into
+        the model (whose saved parameters are the average), so that training goes on where it stopped."""
+        values = state["values"]
+        for part in (values, state.get("last") or {}):
+            if part and set(part) != set(self.params):
+                raise KeyError(f"the average's parameters {sorted(set(part) ^ set(self.params))[:3]} do not match the model's")
+        self.values = {k: values[k].to(self.params[k]).clone() for k in self.params} if values else None
+        self.count = int(state["count"]) if values else 0
+        for k, v in (state.get("last") or {}).items():
+            self.params[k].copy_(v)
+        self.last = None
