@@ -131,7 +131,7 @@ class OccupancyGrid(nn.Module):
         self._coarse_cache: "tuple | None" = None
         self._has_density: "bool | None" = None
         """Whether :attr:`density` holds a refresh (None: not known yet, read once)."""
-        self._span_cache: "dict[tuple, tuple[float, int]]" = {}
+        self._box_cache: "tuple[tuple, tuple[float, float]] | None" = None
 
     @property
     def occupied_fraction(self) -> float:
@@ -249,11 +249,10 @@ class OccupancyGrid(nn.Module):
         """The smallest side of a cell and the diagonal of the grid's box, read from the device once per box (it
         changes when the box is tightened): every marched box lies in it (:meth:`_limits`)."""
         key = (self.aabb.data_ptr(), self.aabb._version)
-        if key not in self._span_cache:
-            self._span_cache.clear()
+        if self._box_cache is None or self._box_cache[0] != key:
             grid = self.aabb.detach().cpu()
-            self._span_cache[key] = float(((grid[1] - grid[0]) / self.cfg.resolution).min()), float((grid[1] - grid[0]).norm())
-        return self._span_cache[key]
+            self._box_cache = key, (float(((grid[1] - grid[0]) / self.cfg.resolution).min()), float((grid[1] - grid[0]).norm()))
+        return self._box_cache[1]
 
     def _coarse_steps(self) -> "tuple[float, int]":
         """The coarse step ``h`` and the most coarse samples a unit ray can take through the grid's box (its
@@ -411,10 +410,10 @@ class OccupancyGrid(nn.Module):
         are faster: :attr:`nerfpipe.models.fast.FastConfig.fixed_shapes`)."""
         num_rays, span = lim.origins.shape[0], self.max_intervals(lim.step_size)
         device = lim.origins.device
-        k = torch.arange(span, device=device)
+        k, rows = torch.arange(span, device=device), max(1, chunk // span)
         valid, t_starts, t_ends, sigma = [], [], [], []
-        for s in range(0, num_rays, max(1, chunk // span)):
-            rays = torch.arange(s, min(s + max(1, chunk // span), num_rays), device=device)
+        for s in range(0, num_rays, rows):
+            rays = torch.arange(s, min(s + rows, num_rays), device=device)
             ks = lim.first[rays, None] + k
             v, t0, t1 = self._intervals(lim, rays, ks.to(lim.t0.dtype))
             v &= ks <= lim.last[rays, None]

@@ -245,7 +245,8 @@ class Trainer:
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
-        model, init_rng = seeded_init(lambda: model_config.setup(scene_info(scene, cfg.train_max_size)), cfg.seed)
+        info = scene_info(scene, cfg.train_max_size)
+        model, init_rng = seeded_init(lambda: model_config.setup(info), cfg.seed)
         self.model: Model = model.to(cfg.device)
         self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
         if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
@@ -269,7 +270,6 @@ class Trainer:
         self._losses: "list[tuple[int, float, Tensor]]" = []  # (step, seconds, MSE on the device) not yet in history
         self._logged_at = 0.0  # perf_counter of the latest flush_losses
         self.hooks = self.model.callbacks()
-        info = scene_info(scene, cfg.train_max_size)
         self.average = ParameterAverage(self.model, cfg.average_from, cfg.average_decay) if (info.unbounded if cfg.average is None else cfg.average) else None
         """The running average of the parameters that the run ends with (None: the last step's)."""
         self.seconds_per_pixel: "float | None" = None  # per ray of the latest validation render
