@@ -192,3 +192,38 @@ def test_occupied_aabb_on_the_device_matches_the_list_of_occupied_cells(fraction
     gen = torch.Generator().manual_seed(int(fraction * 1e4))
     grid.binary.copy_(torch.rand(12**3, generator=gen) < fraction)
     assert torch.equal(grid.occupied_aabb(), _occupied_aabb_reference(grid))
+
+
+@pytest.mark.parametrize("fraction", [0.05, 0.2, 0.4])
+def test_connected_components_match_scipy(fraction, device):
+    """Label propagation gives the same partition as scipy's 26-connected labelling."""
+    ndi = pytest.importorskip("scipy.ndimage")
+    import numpy as np
+
+    from nerfpipe.functional.components import connected_components
+
+    mask = torch.rand(17, 9, 12, generator=torch.Generator().manual_seed(int(fraction * 100))) < fraction
+    labels = connected_components(mask.to(device)).cpu()
+    assert torch.equal(labels > 0, mask)
+    ref, count = ndi.label(mask.numpy(), structure=np.ones((3, 3, 3)))
+    ours, theirs = labels[mask].tolist(), ref[mask.numpy()].tolist()
+    assert len(set(ours)) == count and len(set(zip(ours, theirs))) == count  # one-to-one: the same pieces
+
+
+def test_supported_aabb_leaves_out_floaters_but_keeps_every_large_piece(device):
+    """Two objects (the smaller 9 % of the occupied cells) and scattered single-cell floaters: the box holds both
+    objects and no floater; with no floater it is the occupied box."""
+    r = 32
+    grid = OccupancyGridConfig(resolution=r).setup(AABB).to(device)
+    occ = torch.zeros(r, r, r, dtype=torch.bool)
+    occ[10:20, 8:22, 12:18] = True  # the object
+    occ[22:26, 14:18, 12:17] = True  # a second, separate one (two cells away)
+    grid.binary.copy_(occ.reshape(-1))
+    objects = grid.occupied_aabb()
+    assert torch.equal(grid.supported_aabb(), objects)
+    for ijk in [(0, 0, 0), (31, 31, 31), (2, 28, 5), (30, 3, 25)]:  # floaters: 4 cells of 924
+        occ[ijk] = True
+    grid.binary.copy_(occ.reshape(-1))
+    assert torch.equal(grid.occupied_aabb(), grid.aabb)
+    assert torch.equal(grid.supported_aabb(), objects)
+    assert torch.equal(grid.supported_aabb(min_share=0.0), grid.aabb)

@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from nerfpipe.functional.packed import more_opaque_than
 from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
@@ -209,8 +210,35 @@ class OccupancyGrid(nn.Module):
     def occupied_aabb(self) -> Float[Tensor, "2 3"]:
         """The smallest box around the occupied cells (the whole box when none is), computed on the device:
         per axis the first and last occupied slab (``argmax`` of the slabs' occupancy, from either end)."""
+        return self._box_of(self.binary.view((self.cfg.resolution,) * 3))
+
+    @torch.no_grad()
+    def supported_aabb(self, min_share: float = 0.01) -> Float[Tensor, "2 3"]:
+        """The smallest box around the occupied cells of the pieces that hold at least ``min_share`` of them:
+        the occupied cells are grouped into 26-connected pieces (on a copy of the grid coarsened twofold, so
+        that a piece may have gaps of a cell), and the small pieces, floaters that a few views' noise left
+        anywhere in the box, do not stretch the box (one host read: for occasional calls, e.g. tightening).
+
+        Example: lego_200 after 140 steps has 99.5 k occupied cells, 98 % in one piece and the rest in 815
+        pieces of at most 129 cells spread to the box's faces: :meth:`occupied_aabb` is nearly the whole box.
+        """
+        from nerfpipe.functional.components import connected_components
+
         r = self.cfg.resolution
         occ = self.binary.view(r, r, r)
+        half = -(-r // 2)
+        pad = (0, 2 * half - r) * 3
+        counts = F.avg_pool3d(F.pad(occ.float(), pad)[None, None], 2)[0, 0] * 8  # occupied cells per coarse cell
+        labels = connected_components(counts > 0)
+        per_label = torch.zeros(labels.numel() + 1, device=occ.device).index_add_(0, labels.reshape(-1), counts.reshape(-1))
+        per_label[0] = 0.0
+        kept = per_label >= min_share * per_label.sum()
+        coarse = kept[labels]
+        fine = coarse.repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)[:r, :r, :r]
+        return self._box_of(occ & fine)
+
+    def _box_of(self, occ: Bool[Tensor, "r r r"]) -> Float[Tensor, "2 3"]:
+        r = self.cfg.resolution
         lo, hi = [], []
         for axis in range(3):
             other = tuple(a for a in range(3) if a != axis)

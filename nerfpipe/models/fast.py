@@ -200,15 +200,22 @@ class FastConfig:
     """Grid levels beyond the first two are switched on one by one every this many steps (0: all at once)."""
     warmup_step_factor: float = 4.0
     """Before the first occupancy update every cell is occupied: march with this many times the step."""
-    tighten_step: int = 128
-    """Shrink the box to the occupied cells at this step and resample the grids (0: never). Earlier, the finer
-    voxels of the smaller box train sooner; later, the occupancy is surer. Side by side at equal steps
-    (``python -m benchmarks.side_by_side``), 128 against 256: lego_200 28.08 against 27.86 dB after 300 steps (64 /
-    96 / 48 / 32: 28.09 / 28.07 / 28.09 / 28.04; a second tightening later lost 0.04-0.3 dB: each resampling blurs),
-    blender_lego (5 views, full size) 26.14 / 28.78 against 25.97 / 28.79 after 300 / 1,000, colmap_mouse (7
-    held-out views at 400 px) 24.08 / 24.42 against 24.08 / 24.44 after 300 / 600, at 0.97-1.0x the seconds per step."""
+    tighten_step: int = 64
+    """Shrink the box to the occupied cells at this step and resample the grids (0: never): the levels keep their
+    vertices along the box's longest side, so the voxels get finer and the grids smaller. Only the connected
+    pieces holding ``box_min_share`` of the occupied cells count; the floaters that the first steps leave
+    around the object would otherwise keep the box whole (lego_200: at step 128 the occupied cells' box was
+    the scene box; the pieces' box 1.45 x 2.45 x 2.06 of its 2.9 x 2.9 x 2.9). Side by side at equal steps
+    (``python -m benchmarks.side_by_side``): lego_200 after 300 / 600 steps, tightened at step 64 **28.49 /
+    30.20 dB** in a 25.5 MB field at 0.94x the seconds per step, against 27.86 dB / 45.7 MB at step 256 with
+    every occupied cell (the landed rule until session 21; at step 128 28.08); the pieces' box at step 32 / 48 /
+    96 / 128: 28.38 / 28.36 / 28.43 / 28.30 dB after 300; a second tightening later lost 0.04-0.3 dB (each
+    resampling blurs); colmap_mouse (7 held-out views at 400 px) 24.10 dB after 300 steps against 24.08."""
     box_margin: float = 0.05
     """Fraction of the box size added around the occupied cells when tightening."""
+    box_min_share: float = 0.01
+    """When tightening, the box holds the connected pieces of occupied cells with at least this share of them
+    (:meth:`OccupancyGrid.supported_aabb`), not the floaters around them (0: every occupied cell)."""
     min_transmittance: float = 1e-4
     """Early ray termination: samples behind this transmittance are not shaded."""
     min_alpha: float = 1e-4
@@ -644,7 +651,7 @@ class FastModel(Model):
     @torch.no_grad()
     def tighten(self) -> None:
         """Shrink the field's box to the occupied cells (plus a margin) and resample its grids."""
-        box = self.grid.occupied_aabb()
+        box = self.grid.supported_aabb(self.cfg.box_min_share) if self.cfg.box_min_share > 0 else self.grid.occupied_aabb()
         margin = self.cfg.box_margin * (box[1] - box[0])
         old = self.field.aabb
         box = torch.stack([torch.maximum(box[0] - margin, old[0]), torch.minimum(box[1] + margin, old[1])])
