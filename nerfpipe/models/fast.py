@@ -207,8 +207,8 @@ class FastConfig:
     around the object would otherwise keep the box whole (lego_200: at step 128 the occupied cells' box was
     the scene box; the pieces' box 1.45 x 2.45 x 2.06 of its 2.9 x 2.9 x 2.9). Side by side at equal steps
     (``python -m benchmarks.side_by_side``): lego_200 after 300 / 600 steps, tightened at step 64 **28.49 /
-    30.20 dB** in a 25.5 MB field at 0.94x the seconds per step, against 27.86 dB / 45.7 MB at step 256 with
-    every occupied cell (the landed rule until session 21; at step 128 28.08); the pieces' box at step 32 / 48 /
+    30.20 dB** in a 25.5 MB field, against 27.86 / 29.72 dB in 45.7 MB at step 256 with
+    every occupied cell (the rule until session 21; at step 128 28.08, at 1.07x the seconds per step); the pieces' box at step 32 / 48 /
     96 / 128: 28.38 / 28.36 / 28.43 / 28.30 dB after 300; a second tightening later lost 0.04-0.3 dB (each
     resampling blurs); colmap_mouse (7 held-out views at 400 px) 24.10 dB after 300 steps against 24.08."""
     box_margin: float = 0.05
