@@ -226,9 +226,7 @@ class OccupancyGrid(nn.Module):
 
         r = self.cfg.resolution
         occ = self.binary.view(r, r, r)
-        half = -(-r // 2)
-        pad = (0, 2 * half - r) * 3
-        counts = F.avg_pool3d(F.pad(occ.float(), pad)[None, None], 2)[0, 0] * 8  # occupied cells per coarse cell
+        counts = F.avg_pool3d(occ.float()[None, None], 2, ceil_mode=True, divisor_override=1)[0, 0]  # occupied cells per coarse cell
         labels = connected_components(counts > 0)
         per_label = torch.zeros(labels.numel() + 1, device=occ.device).index_add_(0, labels.reshape(-1), counts.reshape(-1))
         per_label[0] = 0.0

@@ -651,7 +651,7 @@ class FastModel(Model):
     @torch.no_grad()
     def tighten(self) -> None:
         """Shrink the field's box to the occupied cells (plus a margin) and resample its grids."""
-        box = self.grid.supported_aabb(self.cfg.box_min_share) if self.cfg.box_min_share > 0 else self.grid.occupied_aabb()
+        box = self.grid.supported_aabb(self.cfg.box_min_share)
         margin = self.cfg.box_margin * (box[1] - box[0])
         old = self.field.aabb
         box = torch.stack([torch.maximum(box[0] - margin, old[0]), torch.minimum(box[1] + margin, old[1])])
