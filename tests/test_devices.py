@@ -96,8 +96,10 @@ def test_train_prints_the_resolved_device_first(tiny_lego_npz, tmp_path, monkeyp
 @pytest.mark.requires_cuda
 def test_the_default_chain_runs_on_cuda_with_device_auto(tmp_path):
     """The CUDA smoke run: the synthetic scene through the default chain (shrunk as test_demo shrinks it) on auto's
-    pick, which is CUDA on a machine with a GPU."""
+    pick, which is CUDA on a machine with a GPU. The synthetic scene is ray cast by Open3D (the ``mesh`` extra)."""
     import json
+
+    pytest.importorskip("open3d")
 
     from nerfpipe.data.synthetic import SynthConfig, generate
     from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline

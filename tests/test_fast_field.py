@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.data_adapters import load
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
+from nerfpipe.functional.gather import corner_sum, row_dot
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
@@ -44,6 +45,19 @@ def test_gather_gradients_match_dense_products(device, tol):
     ((w2[:, :, None] * t2[idx]).sum(1) * coef).sum().backward()
     torch.testing.assert_close(t1.grad, t2.grad, **tol(torch.float32))
     torch.testing.assert_close(w1.grad, w2.grad, **tol(torch.float32))
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+def test_both_corner_contractions_agree(device, tol, channels):
+    """The batched product (the CPU's route) and the product-and-sum (CUDA's route) of the gather, forward and the
+    backward into the weights, on the same device: the route is chosen by device, so each is tested here on both."""
+    g = torch.Generator().manual_seed(6)
+    w, rows = torch.rand(50, 8, generator=g).to(device), torch.randn(50, 8, channels, generator=g).to(device)
+    v = torch.randn(50, channels, generator=g).to(device)
+    ref_sum, ref_dot = (w[:, :, None] * rows).sum(1), (rows * v[:, None, :]).sum(-1)
+    for batched in (True, False):
+        torch.testing.assert_close(corner_sum(w, rows, batched), ref_sum, **tol(torch.float32))
+        torch.testing.assert_close(row_dot(rows, v, batched), ref_dot, **tol(torch.float32))
 
 
 def test_trilinear_matches_grid_sample(tol):

@@ -1,14 +1,37 @@
 """Weighted gathers from channels-last tables: the kernel of every grid encoding.
 
 ``out[n] = sum_k w[n, k] * table[idx[n, k]]``, with ``K`` corners per point (4 for bilinear,
-8 for trilinear). The forward is one ``index_select`` and a batched product; the backward into
-the table is a single ``index_add_`` (``embedding_bag``'s own backward sorts indices and is
-several times slower on CPU).
+8 for trilinear). The forward is one ``index_select`` and a contraction over the corners; the
+backward into the table is a single ``index_add_`` (``embedding_bag``'s own backward sorts indices
+and is several times slower on CPU).
+
+The contraction is a batched matrix product on the CPU (2-4x faster there than a product and a
+sum) and a product and a sum elsewhere: on CUDA the batched product of ``1 x K`` by ``K x C``
+matrices runs as cuBLAS's batched matrix-vector kernel, which took 5 of the 8 ms of GPU time of a
+fast training step on an H200 (session 22).
 """
 
 import torch
 
 from nerfpipe.util.typing import Float, Int, Tensor
+
+
+def corner_sum(
+    w: Float[Tensor, "num_points K"], rows: Float[Tensor, "num_points K C"], batched: bool
+) -> Float[Tensor, "num_points C"]:
+    """``sum_k w[n, k] * rows[n, k]``: a batched matrix product (``batched``, the CPU's choice) or a product and a sum."""
+    if batched:
+        return torch.bmm(w[:, None, :], rows)[:, 0]
+    return (w[:, :, None] * rows).sum(1)
+
+
+def row_dot(
+    rows: Float[Tensor, "num_points K C"], v: Float[Tensor, "num_points C"], batched: bool
+) -> Float[Tensor, "num_points K"]:
+    """``rows[n, k] . v[n]`` for every corner: :func:`corner_sum`'s derivative in ``w``, by the same two routes."""
+    if batched:
+        return torch.bmm(rows, v[:, :, None])[..., 0]
+    return (rows * v[:, None, :]).sum(-1)
 
 
 class _WeightedGather(torch.autograd.Function):
@@ -17,7 +40,7 @@ class _WeightedGather(torch.autograd.Function):
         n, k = idx.shape
         rows = table.index_select(0, idx.reshape(-1)).view(n, k, table.shape[1])
         ctx.save_for_backward(table, idx, w)
-        return torch.bmm(w[:, None, :], rows)[:, 0]
+        return corner_sum(w, rows, table.device.type == "cpu")
 
     @staticmethod
     def backward(ctx, grad_out):
@@ -28,7 +51,7 @@ class _WeightedGather(torch.autograd.Function):
             grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib)
         if ctx.needs_input_grad[2]:
             rows = table.index_select(0, idx.reshape(-1)).view(*idx.shape, -1)
-            grad_w = torch.bmm(rows, grad_out[:, :, None])[..., 0]
+            grad_w = row_dot(rows, grad_out, table.device.type == "cpu")
         return grad_table, None, grad_w
 
 
