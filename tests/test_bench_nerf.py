@@ -57,7 +57,7 @@ def test_preset_overrides_reach_the_model_config():
     from nerfpipe.util.errors import NerfpipeError
 
     name, cfg, over = resolve_preset("fast-small:distortion_weight=0.001,tv_weight=1e-5,tighten_step=128")
-    assert name == "fast" and cfg.preset == "small" and over["rays_per_step"] == 4096
+    assert name == "fast" and cfg.preset == "small" and over["rays_per_step"] is None  # by the device
     assert (cfg.distortion_weight, cfg.tv_weight, cfg.tighten_step) == (0.001, 1e-5, 128)
     assert resolve_preset("fast")[1].preset == "auto"
     with pytest.raises(NerfpipeError, match="no option 'nope'"):

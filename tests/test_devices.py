@@ -93,6 +93,25 @@ def test_train_prints_the_resolved_device_first(tiny_lego_npz, tmp_path, monkeyp
     assert capsys.readouterr().out.lstrip().startswith("device: cpu (")  # stdout: stderr is for the one line of an error
 
 
+def test_the_fast_models_batch_follows_the_device_and_is_recorded(tiny_lego, tmp_path, device):
+    """The fast model's default rays per step (None) are chosen by the device the run resolved to, and the number
+    used is what config.json records (a resumed run reads it back); an explicit number is kept on any device."""
+    import json
+
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.models.registry import get_preset
+    from nerfpipe.training.trainer import DEVICE_RAYS_PER_STEP, Trainer
+
+    assert get_preset("fast").trainer["rays_per_step"] is None
+    small = FastConfig(levels=(8, 16))
+    for asked, expected in ((None, DEVICE_RAYS_PER_STEP[torch.device(device).type]), (300, 300)):
+        cfg = TrainerConfig(iters=1, video_frames=0, write_outputs=False, rays_per_step=asked, device=str(device))
+        trainer = Trainer(cfg, tiny_lego, "fast", small, tmp_path / str(asked))
+        assert trainer.cfg.rays_per_step == trainer.rays == expected
+        trainer.write_config()
+        assert json.loads((tmp_path / str(asked) / "config.json").read_text())["trainer"]["rays_per_step"] == expected
+
+
 @pytest.mark.requires_cuda
 def test_the_default_chain_runs_on_cuda_with_device_auto(tmp_path):
     """The CUDA smoke run: the synthetic scene through the default chain (shrunk as test_demo shrinks it) on auto's

@@ -16,7 +16,7 @@ def demo_configs(train_seconds: float, mesh_resolution: int = 256, frames: int =
         # the synthetic scene is bounded (one colour around the objects): no field behind the box, whose cost
         # (519 -> 359 iterations in 90 s) buys nothing here (F-score@1% 0.986 without it at 192^3)
         "train": {"model": "fast", "model_options": {"background_field": False}, "trainer": {"iters": 100_000, "train_budget": train_seconds, "background": "white",
-                                               "rays_per_step": 4096, "eval_every": 100}},
+                                               "eval_every": 100}},
         "render": {"frames": frames},
         "mesh": {"mesh": {"resolution": mesh_resolution}},
     }

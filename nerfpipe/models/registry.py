@@ -32,8 +32,9 @@ class Preset:
     """TrainerConfig fields that differ from its defaults."""
 
 
-TRAINER_DEFAULTS = {"fast": {"rays_per_step": 4096}, "vanilla": {"rays_per_step": 1024}}
-"""Trainer options the built-in models are trained with by default (their measured recipes: README)."""
+TRAINER_DEFAULTS = {"fast": {"rays_per_step": None}, "vanilla": {"rays_per_step": 1024}}
+"""Trainer options the built-in models are trained with by default (their measured recipes: README); the fast
+model's rays per step follow the device (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`)."""
 
 
 def presets() -> "dict[str, Preset]":

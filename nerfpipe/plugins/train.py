@@ -43,9 +43,9 @@ class TrainStageConfig:
     model_options: JsonTable = field(default_factory=dict)
     """Overrides of the model's config, nested as the config is (e.g. ``{"field": {"width": 64}}``; JSON on the
     command line)."""
-    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(rays_per_step=4096, video_frames=0, eval_max_size=400))
+    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(rays_per_step=None, video_frames=0, eval_max_size=400))
     """Training options (``device`` comes from the pipeline; videos are the render stage's). Defaults as
-    ``nerfpipe train`` and the bench: 4096 rays per step; validation renders at most 400 pixels on the
+    ``nerfpipe train`` and the bench: rays per step by the device (4,096 on the CPU, 16,384 on CUDA); validation renders at most 400 pixels on the
     longer side, so a budgeted run is not spent scoring phone photos."""
     budget_share: float = 0.6
     """Share of the pipeline's remaining time budget given to training (the rest: evaluation, later stages)."""
