@@ -89,3 +89,20 @@ def test_side_by_side_interleaves_variants_and_reports_size(scene_path, tmp_path
                                  marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads()))
     assert [r["name"] for r in rows] == ["dense", "compact"] and all(r["step"] == 3 and r["s_per_step"] > 0 for r in rows)
     assert rows[1]["model_mb"] < rows[0]["model_mb"]  # hashed into 512-row tables
+
+
+def test_step_profile_times_each_mode_and_batch(scene_path, tmp_path, device):
+    """The step profiler trains a fresh model per marching mode and batch and times its steady steps; on CUDA the
+    profiler's figures come with each row (GPU busy no more than the wall time, at least one kernel per step)."""
+    from benchmarks.step_profile import StepProfileConfig, main
+
+    log = tmp_path / "profile.jsonl"
+    rows = main(StepProfileConfig(tiny_lego(scene_path, tmp_path), options=("levels=(8, 16)",), rays=(32, 64), modes=("fixed", "rounds"),
+                                  warm=3, steps=2, profiled_steps=2, device=str(device), threads=torch.get_num_threads(), log=log))
+    assert [(r["mode"], r["rays"]) for r in rows] == [("fixed", 32), ("fixed", 64), ("rounds", 32), ("rounds", 64)]
+    assert all(r["ms_per_step"] > 0 and r["samples_per_ray"] > 0 for r in rows)
+    assert len(log.read_text().splitlines()) == 4
+    if torch.device(device).type == "cuda":
+        assert all(0 < r["gpu_busy_ms_per_step"] <= r["profiled_ms_per_step"] and r["kernel_launches_per_step"] >= 1 for r in rows)
+    else:
+        assert not any("gpu_busy_ms_per_step" in r for r in rows)
