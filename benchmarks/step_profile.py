@@ -26,6 +26,7 @@ import torch
 import tyro
 
 from benchmarks.steps import append_log, model_config
+from nerfpipe.training.opcount import gpu_profile
 
 
 @dataclass
@@ -53,33 +54,6 @@ class StepProfileConfig:
     """Print the profiler's tables of the top kernels and host ops (CUDA)."""
     log: "Path | None" = None
     """Append the JSON lines to this file."""
-
-
-def gpu_profile(step, steps: int, device: str, tables: bool = False) -> dict:
-    """GPU time, kernel launches and wall time per call of ``step`` over ``steps`` calls under torch's profiler
-    (CUDA). The busy time sums the kernels' own device time (user annotations such as the optimiser's step range
-    left out, as the profiler's ``Self CUDA time total`` does); the profiler lengthens the host's time, so the busy
-    share is a lower bound."""
-    from torch.autograd import DeviceType
-    from torch.profiler import ProfilerActivity, profile
-
-    torch.cuda.synchronize(device)
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            step()
-        torch.cuda.synchronize(device)
-        wall = time.perf_counter() - t0
-    events = prof.key_averages()
-    kernels = [e for e in events if e.device_type == DeviceType.CUDA and not getattr(e, "is_user_annotation", False)]
-    busy_ms = sum(e.self_device_time_total for e in kernels) / 1000 / steps
-    launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel")) / steps
-    if tables:
-        print(events.table(sort_by="self_device_time_total", row_limit=12))
-        print(events.table(sort_by="self_cpu_time_total", row_limit=12))
-    wall_ms = 1000 * wall / steps
-    return {"profiled_ms_per_step": wall_ms, "gpu_busy_ms_per_step": busy_ms, "gpu_busy_share": busy_ms / wall_ms,
-            "kernel_launches_per_step": launches}
 
 
 def main(cfg: StepProfileConfig) -> "list[dict]":

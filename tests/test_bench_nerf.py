@@ -24,6 +24,13 @@ def test_write_table_outputs(tmp_path):
     md = (tmp_path / "table.md").read_text().splitlines()
     assert len([line for line in md if line.startswith("| fast-small")]) == 2
     assert "26.50" in md[-1]
+    header = [c.strip() for c in md[2].split("|")]
+    assert {"kernel launches/step", "GPU busy", "peak GPU MB"} <= set(header)
+    assert [c.strip() for c in md[-1].split("|")][header.index("GPU busy")] == "-"  # a CPU row: no GPU figures
+    gpu = dict(rows[-1], kernel_launches_per_step=412.0, gpu_busy_share=0.334, peak_gpu_mb=973.4)
+    write_table([gpu], tmp_path, "lego", BenchConfig(budgets=(20.0, 60.0)))
+    cells = [c.strip() for c in (tmp_path / "table.md").read_text().splitlines()[-1].split("|")]
+    assert [cells[header.index(k)] for k in ("kernel launches/step", "GPU busy", "peak GPU MB")] == ["412", "33%", "973"]
     assert (tmp_path / "psnr_vs_seconds.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -38,11 +45,15 @@ def tiny_lego(scene_path, tmp_path):
     return npz
 
 
-def test_bench_run_scores_each_budget(scene_path, tmp_path):
+def test_bench_run_scores_each_budget(scene_path, tmp_path, device):
+    """On CUDA each row also carries the GPU's figures (peak memory, busy share, kernel launches per step)."""
     from nerfpipe.training.bench import run
 
     npz = tiny_lego(scene_path, tmp_path)
-    rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads()))
+    rows = run(npz, tmp_path / "out", BenchConfig(budgets=(0.2, 0.5), presets=("fast-small",), rays_per_step=64, threads=torch.get_num_threads(),
+                                                  device=str(device)))
+    if torch.device(device).type == "cuda":
+        assert all(r["peak_gpu_mb"] > 0 and 0 < r["gpu_busy_share"] <= 1 and r["kernel_launches_per_step"] >= 1 for r in rows)
     assert [r["budget_s"] for r in rows] == [0.2, 0.5]
     assert rows[0]["clock_s"] >= 0.2 and rows[1]["clock_s"] >= 0.5 and rows[1]["iterations"] >= rows[0]["iterations"] >= 1
     assert (tmp_path / "out" / "table.md").is_file()

@@ -26,6 +26,11 @@ from pathlib import Path
 COUNTED_STEPS = 4
 """Training steps after each budget whose ATen ops and host syncs are counted (:mod:`nerfpipe.training.opcount`)."""
 
+PROFILED_STEPS = 8
+"""On CUDA, training steps after those whose GPU busy share and kernel launches are measured under torch's profiler
+(:func:`nerfpipe.training.opcount.gpu_profile`). They train on off the budget's clock (the profiler would add its own
+overhead to it): each later budget of a CUDA run gets these few steps more than its seconds bought."""
+
 PRESET_NAMES = ("vanilla", "fast-small", "fast-medium", "fast-large")
 """Default presets; ``fast`` (capacity chosen from the scene) is also available."""
 
@@ -146,7 +151,7 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> 
     trainer.model.train()
     import torch
 
-    from nerfpipe.training.opcount import count_steps
+    from nerfpipe.training.opcount import count_steps, gpu_profile
 
     clock, rows = _Clock(cfg.clock, cfg.threads), []
 
@@ -163,6 +168,7 @@ def bench_preset(scene, name: str, cfg: BenchConfig, out: Path, on_row=None) -> 
         r.update(count_steps(step, COUNTED_STEPS).row())  # the next steps (training goes on), after the score
         if torch.device(trainer.cfg.device).type == "cuda":
             r["peak_gpu_mb"] = torch.cuda.max_memory_allocated(trainer.cfg.device) / 2**20
+            r.update(gpu_profile(trainer.train_step, PROFILED_STEPS, trainer.cfg.device))  # off the clock: see PROFILED_STEPS
         print(f"{name:12s} {budget:6g} s: {r['val_psnr']:.2f} dB after {r['iterations']} it "
               f"({r['train_s']:.0f} s wall, load {r['loadavg']:.1f}, OpenMP waits: {r['omp_wait']})", flush=True)
         if on_row is not None:
@@ -177,8 +183,9 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
     write_json(out / "table.json", {"scene": scene_name, "config": dataclasses.asdict(cfg), "rows": rows})
     lines = [
         f"# Speed against error on {scene_name}", "",
-        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | finest level | occupied | samples/ray | ATen ops/step | syncs/step | load | OpenMP waits |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| preset | budget s | train s (wall) | CPU s | iters | val PSNR | SSIM | params | MB | finest level | occupied | samples/ray | ATen ops/step | syncs/step | "
+        "kernel launches/step | GPU busy | peak GPU MB | load | OpenMP waits |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in rows:
@@ -186,7 +193,8 @@ def write_table(rows: "list[dict]", out: Path, scene_name: str, cfg: BenchConfig
             f"| {r['preset']} | {r['budget_s']:g} | {r['train_s']:.1f} | {r['train_cpu_s']:.1f} | {r['iterations']} | "
             f"{r['val_psnr']:.2f} | {r['val_ssim']:.3f} | {r['model_params']:,} | {r['model_mb']:.1f} | {fmt(r.get('finest_resolution'), '.0f')} | "
             f"{fmt(r['occupied_fraction'], '.3f')} | {fmt(r['samples_per_ray'], '.1f')} | {fmt(r.get('aten_ops_per_step'), '.0f')} | "
-            f"{fmt(r.get('host_syncs_per_step'), '.1f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
+            f"{fmt(r.get('host_syncs_per_step'), '.1f')} | {fmt(r.get('kernel_launches_per_step'), '.0f')} | {fmt(r.get('gpu_busy_share'), '.0%')} | "
+            f"{fmt(r.get('peak_gpu_mb'), '.0f')} | {r['loadavg']:.1f} | {r.get('omp_wait', '-')} |"
         )
     atomic_write(out / "table.md", lambda p: Path(p).write_text("\n".join(lines) + "\n"))
     plot(rows, out / "psnr_vs_seconds.png", scene_name)

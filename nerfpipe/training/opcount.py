@@ -25,6 +25,7 @@ Example:
     (2, {'aten.index.Tensor(bool)': 1, 'aten._local_scalar_dense': 1})
 """
 
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -207,3 +208,30 @@ def count_steps(step, steps: int) -> StepCounts:
         steps=steps, ops=sum(p[0] for p in per) / n, syncs=sum(p[1] for p in per) / n, uploads=sum(p[2] for p in per) / n,
         max_ops=max((p[0] for p in per), default=0), max_syncs=max((p[1] for p in per), default=0), sync_ops=dict(total),
     )
+
+
+def gpu_profile(step, steps: int, device: str, tables: bool = False) -> "dict[str, float]":
+    """GPU time, kernel launches and wall time per call of ``step`` over ``steps`` calls under torch's profiler, on a
+    CUDA ``device``. The busy time sums the kernels' own device time (user annotations such as the optimiser's step
+    range left out, as the profiler's ``Self CUDA time total`` does); the profiler lengthens the host's time, so the
+    busy share is a lower bound. ``tables``: print the profiler's tables of the top kernels and host ops."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            step()
+        torch.cuda.synchronize(device)
+        wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    kernels = [e for e in events if e.device_type == DeviceType.CUDA and not getattr(e, "is_user_annotation", False)]
+    busy_ms = sum(e.self_device_time_total for e in kernels) / 1000 / steps
+    launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel")) / steps
+    if tables:
+        print(events.table(sort_by="self_device_time_total", row_limit=12))
+        print(events.table(sort_by="self_cpu_time_total", row_limit=12))
+    wall_ms = 1000 * wall / steps
+    return {"profiled_ms_per_step": wall_ms, "gpu_busy_ms_per_step": busy_ms, "gpu_busy_share": busy_ms / wall_ms,
+            "kernel_launches_per_step": launches}
