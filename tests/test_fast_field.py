@@ -204,6 +204,21 @@ def test_capacity_follows_the_scene():
         FastConfig(preset="huge").setup(info())
 
 
+def test_a_presets_spacing_level_sets_the_sample_spacing():
+    """``medium``'s hashed finest level (256) keeps the sample spacing of the dense 192 it replaced: with every level on,
+    its samples are as far apart as the old preset's (and as ``step_ratio`` says in 192-level voxels); levels of one's
+    own count the spacing in their own finest voxel."""
+    model = FastConfig(preset="medium").setup(info())
+    assert model.capacity["levels"][-1] == 256 and model.capacity["spacing"] == 192
+    assert model.field.density_grid.hash_rows[-1] == 2**19 and model.field.density_grid.hash_rows[0] is None
+    old = FastConfig(preset="medium", levels=(32, 64, 128, 192), log2_hashmap_size=0).setup(info())  # the former dense medium
+    assert old.capacity["spacing"] is None and old.field.density_grid.hash_rows == [None] * 4
+    for m in (model, old):
+        m.field.active_levels = 4
+    assert model.step_size == pytest.approx(old.step_size, rel=1e-6)
+    assert model.stats()["model_mb"] < old.stats()["model_mb"] / 3
+
+
 def test_tighten_resamples_a_linear_field_exactly():
     model = FastConfig(**TINY).setup(info())
     table = model.field.density_grid.tables[1]

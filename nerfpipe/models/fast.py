@@ -34,14 +34,24 @@ from nerfpipe.util.typing import Float, Tensor
 
 PRESETS: "dict[str, dict]" = {
     "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64, log2_hashmap_size=None),
-    "medium": dict(levels=(32, 64, 128, 192), feature_channels=4, hidden=64, log2_hashmap_size=None),
+    "medium": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64, log2_hashmap_size=19, spacing=192),
     "large": dict(levels=(32, 64, 128, 256), feature_channels=4, hidden=64, log2_hashmap_size=None),
     "compact": {},  # sized from the scene: compact_capacity
 }
-"""Capacity presets. ``small``, ``medium``, ``large``: dense (every vertex stored), vertices per axis of each grid
-level along the box's longest side; ``auto`` (the default) picks ``small`` or ``medium`` from the pixel count,
-and ``compact`` where ``large`` would be (:func:`auto_preset`). ``compact``: a hashed field sized from the scene
-(:func:`compact_capacity`)."""
+"""Capacity presets: vertices per axis of each grid level along the box's longest side. ``small`` and ``large``: dense
+(every vertex stored); ``medium``: levels of more than 2^19 vertices hashed into 2^19 rows; ``auto`` (the default)
+picks ``small`` or ``medium`` from the pixel count, and ``compact`` where ``large`` would be (:func:`auto_preset`).
+``compact``: a hashed field sized from the scene (:func:`compact_capacity`). ``spacing``: the level whose voxel the
+sample spacing (``step_ratio``) is counted in, where finer than the finest level's (None: the finest).
+
+``medium`` was dense to 192 (83.2 MB on blender_lego after the box's tightening) until session 22; with a hashed finest
+level of 256 at the same sample spacing (side by side at equal steps; the old medium first): blender_lego (5 views at
+400²) 26.24 / 28.93 dB after 300 / 1,000 steps against 26.23 / **29.03** in **23.1 MB**, at 1.15x the seconds per step
+(as landed, the spacing 255/191 of a 256-voxel rather than the run's 1.333 / 0.667 ratios: 26.21 / 29.06 in 23.0 MB);
+a 23-photo real capture (colmap_mouse's, training images at 800 px, which ``auto`` puts in this tier; 3 held-out views
+at 400 px) 23.31 / 22.80 dB after 300 / 600 steps against 23.31 / **22.97**, in 63.7 / 22.0 MB, at 0.170 / 0.160 s
+per step (600); lego_200 (a ``small`` scene) with four such levels to 256 at 2^18 rows: 32.63 / 33.39 dB after 3,000
+steps (README)."""
 
 
 def auto_preset(info: SceneInfo) -> str:
@@ -320,6 +330,8 @@ class FastConfig:
         for key in ("levels", "feature_channels", "hidden", "log2_hashmap_size"):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
+        if self.levels is not None or not out.get("spacing"):  # levels of one's own: spacing in their finest voxel
+            out["spacing"] = None
         if not out["log2_hashmap_size"]:
             out["log2_hashmap_size"] = None
         return out
@@ -336,6 +348,10 @@ class FastModel(Model):
         self._step = 0
         self.register_buffer("trained_steps", torch.tensor(0))
         log2_rows = self.capacity["log2_hashmap_size"]
+        spacing, finest = self.capacity["spacing"], max(self.capacity["levels"])
+        self._spacing_scale = 1.0 if spacing is None else (finest - 1) / (spacing - 1)
+        """Sample spacing over ``step_ratio`` finest voxels: a preset's finer finest level keeps the spacing of its
+        ``spacing`` level."""
         self.field = FastField(
             aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"],
             max_rows=None if log2_rows is None else 2**log2_rows,
@@ -382,7 +398,7 @@ class FastModel(Model):
 
     @property
     def step_size(self) -> float:
-        return self.field.voxel_size(self.field.active_levels - 1) * self._step_ratio()
+        return self.field.voxel_size(self.field.active_levels - 1) * self._step_ratio() * self._spacing_scale
 
     def _step_ratio(self) -> float:
         fine = not self.cfg.fine_steps_from or self._step >= self.cfg.fine_steps_from
