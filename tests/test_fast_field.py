@@ -1,6 +1,8 @@
 """The fast grid field: trilinear gathers against a loop reference (values, float64 gradcheck),
 resampling on box tightening, checkpoint round trip, and a tiny training run that learns."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -217,6 +219,27 @@ def test_a_presets_spacing_level_sets_the_sample_spacing():
         m.field.active_levels = 4
     assert model.step_size == pytest.approx(old.step_size, rel=1e-6)
     assert model.stats()["model_mb"] < old.stats()["model_mb"] / 3
+
+
+def test_a_checkpoint_of_the_former_dense_medium_still_loads():
+    """Runs written before ``medium`` hashed its finest level load with the capacity they were trained with (their
+    config.json says only ``auto`` or ``medium``); a checkpoint of today's medium keeps today's."""
+    from nerfpipe.models.fast import LEGACY_CAPACITY
+
+    cfg = FastConfig(preset="medium")
+    old = replace(cfg, **LEGACY_CAPACITY["medium"]).setup(info())
+    with torch.no_grad():
+        old.field.density_grid.tables[3].normal_()
+    state = old.state_dict()
+    fitted = cfg.for_checkpoint(state, info())
+    assert fitted.levels == (32, 64, 128, 192) and not fitted.log2_hashmap_size
+    model = fitted.setup(info())
+    model.load_state_dict(state)
+    probe = torch.rand(50, 3) - 0.5
+    torch.testing.assert_close(model.field.density(probe), old.field.density(probe))
+    assert cfg.for_checkpoint(cfg.setup(info()).state_dict(), info()) is cfg
+    with pytest.raises(RuntimeError):  # without it, the former checkpoint does not fit today's medium
+        cfg.setup(info()).load_state_dict(state)
 
 
 def test_tighten_resamples_a_linear_field_exactly():

@@ -17,7 +17,7 @@ Glossary:
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from collections.abc import Callable, Iterator
 
 import torch
@@ -52,6 +52,11 @@ a 23-photo real capture (colmap_mouse's, training images at 800 px, which ``auto
 at 400 px) 23.31 / 22.80 dB after 300 / 600 steps against 23.31 / **22.97**, in 63.7 / 22.0 MB, at 0.170 / 0.160 s
 per step (600); lego_200 (a ``small`` scene) with four such levels to 256 at 2^18 rows: 32.63 / 33.39 dB after 3,000
 steps (README)."""
+
+
+LEGACY_CAPACITY: "dict[str, dict]" = {"medium": dict(levels=(32, 64, 128, 192), log2_hashmap_size=0)}
+"""Presets as they were before they changed (``medium`` was dense to 192 until session 22), for the runs written then:
+:meth:`FastConfig.for_checkpoint`."""
 
 
 def auto_preset(info: SceneInfo) -> str:
@@ -321,6 +326,19 @@ class FastConfig:
 
     def setup(self, scene_info: SceneInfo) -> "FastModel":
         return FastModel(self, scene_info)
+
+    def for_checkpoint(self, state: dict, scene_info: SceneInfo) -> "FastConfig":
+        """This config, or the one a checkpoint's ``state`` (a model state dict) was trained with where its preset has
+        changed since (:data:`LEGACY_CAPACITY`): the finest level's table is not hashed as the preset now hashes it.
+        Runs written by an earlier nerfpipe then still render, mesh and score."""
+        cap = self.resolved(scene_info)
+        legacy = LEGACY_CAPACITY.get(cap["preset"])
+        if legacy is None or self.levels is not None or self.log2_hashmap_size is not None or not cap["log2_hashmap_size"]:
+            return self
+        finest = state.get(f"field.density_grid.tables.{len(cap['levels']) - 1}")
+        if finest is None or finest.shape[0] == 2 ** cap["log2_hashmap_size"]:
+            return self
+        return replace(self, **legacy)
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""

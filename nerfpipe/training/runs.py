@@ -116,6 +116,9 @@ def load_run(run_dir: Path, device: str = "auto"):
         from nerfpipe.data_adapters.colmap import with_points
 
         scene = with_points(scene, Path(cfg["points"]))
-    model = model_cfg.setup(scene_info(scene, cfg.get("trainer", {}).get("train_max_size"))).to(device)
+    info = scene_info(scene, cfg.get("trainer", {}).get("train_max_size"))
+    if hasattr(model_cfg, "for_checkpoint"):  # a preset changed since the run was written: the capacity it was trained with
+        model_cfg = model_cfg.for_checkpoint(state, info)
+    model = model_cfg.setup(info).to(device)
     load_model_state(model, state, ckpt_path, cfg["model"])
     return scene, model.eval(), cfg
