@@ -40,7 +40,8 @@ class StepProfileConfig:
     rays: "tuple[int, ...]" = (4096,)
     """Rays per step to profile, each from a fresh model."""
     modes: "tuple[str, ...]" = ("fixed",)
-    """Marching: ``fixed`` (shapes known on the host) and/or ``rounds`` (early termination in rounds)."""
+    """Steps: ``graph`` (shapes known on the host, the step a replayed CUDA graph: CUDA's default), ``fixed`` (the same
+    steps launched eagerly) and/or ``rounds`` (early termination in rounds, eager: the CPU's default)."""
     warm: int = 600
     """Steps trained before timing (past the warm-up, the tightening and the switch to fine samples)."""
     steps: int = 50
@@ -69,9 +70,9 @@ def main(cfg: StepProfileConfig) -> "list[dict]":
     rows = []
     for mode in cfg.modes:
         for rays in cfg.rays:
-            model = model_config(cfg.preset, cfg.options + (f"fixed_shapes={mode == 'fixed'}",))
+            model = model_config(cfg.preset, cfg.options + (f"fixed_shapes={mode != 'rounds'}",))
             tcfg = TrainerConfig(iters=10**9, rays_per_step=rays, eval_every=0, checkpoint_every=0, video_frames=0,
-                                 write_outputs=False, device=device, seed=cfg.seed)
+                                 write_outputs=False, device=device, seed=cfg.seed, cuda_graph=mode == "graph")
             trainer = Trainer(tcfg, scene, "fast", model, Path(tempfile.mkdtemp()))
             trainer.model.train()
             if cuda:
@@ -87,6 +88,8 @@ def main(cfg: StepProfileConfig) -> "list[dict]":
             row = {"mode": mode, "rays": rays, "device": device, "warm_steps": cfg.warm, "warm_s": w1 - w0,
                    "ms_per_step": 1000 * (time.perf_counter() - w1) / max(cfg.steps, 1),
                    "samples_per_ray": float(trainer.model.stats().get("samples_per_ray", 0.0)), "load": os.getloadavg()[0]}
+            if trainer.graph is not None:
+                row.update(trainer.graph.stats(), graph_failed=trainer.graph.failed)
             if cuda:
                 row["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
                 if cfg.profiled_steps:

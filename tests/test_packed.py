@@ -139,3 +139,16 @@ def test_quantile_depth_matches_a_fine_scan(device):
     expected = (fog[0] * (fog[1] + 0.5)).sum() / fog[0].sum()
     median = quantile_depth_packed(*fog, torch.zeros(11, dtype=torch.long), 1)
     assert abs(float(median) - 10.375) < 1e-5 and float(expected) < 9.6  # the fog pulls the mean out of the surface, not the median
+
+
+@pytest.mark.parametrize("capacity", [0, 5, 300, 2000])
+def test_pack_static_is_nonzero_in_slots_known_beforehand(capacity, device):
+    from nerfpipe.functional.packed import pack_static
+
+    mask = torch.rand(1500, generator=torch.Generator().manual_seed(capacity)).to(device) < 0.3
+    ref = mask.nonzero()[:, 0]
+    pos, count, pad = pack_static(mask, capacity, fill=7)
+    assert pos.shape == pad.shape == (capacity,) and int(count) == len(ref)
+    n = min(capacity, len(ref))
+    assert torch.equal(pos[:n], ref[:n]) and (pos[n:] == 7).all()
+    assert torch.equal(pad, torch.arange(capacity, device=device) >= len(ref))

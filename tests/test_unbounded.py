@@ -570,3 +570,35 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert "sparsity" in model.get_losses(out, torch.zeros(2, 3))
     model.eval()
     assert "sparsity" not in model.get_losses(out, torch.zeros(2, 3))
+
+
+def test_a_real_capture_training_step_with_sample_slots_reads_nothing_back():
+    """Issue 13: with the samples packed into slots known beforehand (what the trainer's CUDA graph sets), the same
+    step reads nothing back, so it can be captured whole; it trains as the step that reads the count back."""
+    from nerfpipe.training.opcount import DispatchCounter
+
+    model = _model(fixed_shapes=True)
+    model.train()
+    model._step = model.cfg.behind_from
+    rays, bg = _rays(64, 3), torch.zeros(64, 3)
+    target, depth = torch.rand(64, 3), torch.where(torch.arange(64) % 2 == 0, 3.5, float("nan"))
+
+    def step(seed):
+        model.zero_grad(set_to_none=True)
+        model.generator = torch.Generator().manual_seed(seed)
+        out = model.get_outputs(rays, bg)
+        sum(model.get_losses(out, target, depth).values()).backward()
+        return out, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+
+    ref, ref_grads = step(0)
+    n = int(model.sample_count())
+    assert n == ref.num_samples > 0
+    model.sample_capacity = n + 1000
+    with DispatchCounter() as c:
+        got, grads = step(0)
+    assert c.syncs == 0, dict(c.sync_ops)
+    assert got.num_samples == n + 1000 and int(model.sample_count()) == n
+    torch.testing.assert_close(got.rgb, ref.rgb, rtol=1e-6, atol=1e-7)
+    assert grads.keys() == ref_grads.keys()
+    for name in grads:
+        torch.testing.assert_close(grads[name], ref_grads[name], rtol=1e-5, atol=1e-9)

@@ -13,6 +13,7 @@ def bench(
     eval_views: int = 0,
     eval_scale: float = 1.0,
     rays_per_step: "int | None" = None,
+    cuda_graph: "bool | None" = None,
     threads: int = 2,
     clock: str = "wall",
     seed: int = 0,
@@ -28,6 +29,7 @@ def bench(
         eval_views: validation views scored at each budget (0: all).
         eval_scale: resolution factor of the validation renders.
         rays_per_step: override every preset's rays per iteration.
+        cuda_graph: replay each training step as a CUDA graph (default: on CUDA; False: launch its kernels one by one).
         threads: torch CPU threads.
         clock: wall (seconds) or cpu (process CPU seconds / threads, fairer on a busy machine).
         seed: random seed.
@@ -37,6 +39,7 @@ def bench(
     from nerfpipe.util.devices import announce
 
     cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
-                      threads=threads, clock=clock, seed=seed, device=announce(device), rays_per_step=rays_per_step)
+                      threads=threads, clock=clock, seed=seed, device=announce(device), rays_per_step=rays_per_step,
+                      cuda_graph=cuda_graph)
     run(path, out, cfg)
     return 0

@@ -29,7 +29,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from nerfpipe.functional.packed import more_opaque_than
+from nerfpipe.functional.packed import more_opaque_than, pack_static
 from nerfpipe.functional.volrend import optical_thickness, weights_from_thickness
 from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
@@ -68,6 +68,9 @@ class PackedSamples:
     t_starts: Float[Tensor, "num_samples"]
     t_ends: Float[Tensor, "num_samples"]
     num_rays: int
+    count: "Int[Tensor, ''] | None" = None
+    """How many of the samples are real where they were packed into a capacity known beforehand (the rest are
+    zero-length padding at the end, on the last ray: they add nothing to any ray); None: every sample is real."""
 
     def __len__(self) -> int:
         return self.ray_indices.shape[0]
@@ -388,6 +391,7 @@ class OccupancyGrid(nn.Module):
         rounds: "Rounds | None" = None,
         generator: "torch.Generator | None" = None,
         fixed_shapes: bool = False,
+        capacity: "int | None" = None,
     ) -> "tuple[PackedSamples, Float[Tensor, 'num_samples']]":
         """:meth:`march` then :func:`~nerfpipe.functional.packed.prune_mask`, with early ray termination.
 
@@ -404,6 +408,8 @@ class OccupancyGrid(nn.Module):
             fixed_shapes: instead of rounds, march every ray over the longest span the grid's box allows and
                 evaluate the density at every interval at once, in shapes known on the host; the kept samples
                 are then packed by one ``nonzero``, the only read back (for a GPU: see :meth:`_until_opaque_fixed`).
+            capacity: with ``fixed_shapes``, pack the kept samples into exactly this many instead (no read back at all:
+                :func:`pack_static`); the samples beyond it are dropped, ``count`` of the result says how many there were.
 
         Returns:
             The kept samples, as ``prune_mask`` selects them from :meth:`march` (equal up to the
@@ -412,7 +418,7 @@ class OccupancyGrid(nn.Module):
         # in fixed shapes every ray is marched over the longest span anyway: the coarse skipping would save nothing
         lim = self._limits(origins, directions, near, far, step_size, jitter, aabb, generator, span=not fixed_shapes)
         if fixed_shapes:
-            return self._until_opaque_fixed(lim, sigma_fn, min_transmittance, min_alpha)
+            return self._until_opaque_fixed(lim, sigma_fn, min_transmittance, min_alpha, capacity=capacity)
         state = _RayState.start(lim)
         rounds = rounds or Rounds()
         kept, n = [], 0
@@ -426,7 +432,8 @@ class OccupancyGrid(nn.Module):
             n += 1
         return _sorted_by_ray(kept, origins)
 
-    def _until_opaque_fixed(self, lim: _Limits, sigma_fn, min_transmittance: float, min_alpha: "float | None", chunk: int = 1 << 22):
+    def _until_opaque_fixed(self, lim: _Limits, sigma_fn, min_transmittance: float, min_alpha: "float | None", chunk: int = 1 << 22,
+                            capacity: "int | None" = None):
         """:meth:`march_until_opaque` in shapes known on the host: each ray's intervals ``first .. first + S - 1``
         (``S`` = :meth:`max_intervals`, the longest span a ray can have in the grid's box) are marched and their
         densities evaluated all at once (the empty ones masked), the transmittance in front of each is an exclusive
@@ -453,6 +460,12 @@ class OccupancyGrid(nn.Module):
         keep = valid & (trans > min_transmittance)
         if min_alpha is not None:
             keep &= more_opaque_than(sigma.reshape(-1), (t_ends - t_starts).reshape(-1), min_alpha).view(keep.shape)
+        if capacity is not None:  # no read back: a CUDA graph can hold the whole step
+            flat, count, pad = pack_static(keep.reshape(-1), capacity, fill=(num_rays - 1) * span)
+            row, col = flat // span, flat % span  # padding: the last ray's first interval, made zero-length
+            t0 = t_starts[row, col]
+            samples = PackedSamples(row, t0, torch.where(pad, t0, t_ends[row, col]), num_rays, count=count)
+            return samples, torch.where(pad, 0.0, sigma[row, col])
         row, col = keep.nonzero(as_tuple=True)  # the one read back: how many samples there are
         return PackedSamples(row, t_starts[row, col], t_ends[row, col], num_rays), sigma[row, col]
 

@@ -21,6 +21,34 @@ from nerfpipe.functional.volrend import optical_thickness, weights_from_thicknes
 from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 
+def pack_static(mask: Bool[Tensor, "n"], capacity: int, fill: int = 0) -> "tuple[Int[Tensor, 'capacity'], Int[Tensor, ''], Bool[Tensor, 'capacity']]":
+    """The positions of ``mask``'s true entries, in order, in exactly ``capacity`` slots: ``nonzero`` with a size known
+    on the host, so nothing is read back (what ``torch.nonzero_static`` does, in a cumulative sum and a scatter that
+    every device and a CUDA graph can run).
+
+    Returns:
+        ``(positions, count, padding)``: the first ``capacity`` true positions, the unused slots at the end holding
+        ``fill``; how many entries were true (more than ``capacity``: the later ones are dropped); which slots are
+        padding.
+
+    Example:
+        >>> pos, count, pad = pack_static(torch.tensor([False, True, True, False, True]), 4, fill=9)
+        >>> pos.tolist(), int(count), pad.tolist()
+        ([1, 2, 4, 9], 3, [False, False, False, True])
+    """
+    rank = torch.cumsum(mask, 0)  # 1-based rank of each true entry
+    count = mask.sum()
+    every = torch.arange(mask.shape[0], device=mask.device)
+    # the others into slots cut off below (spread over _DUMP_SLOTS of them: millions of writes to one address serialise)
+    slot = torch.where(mask & (rank <= capacity), rank - 1, capacity + (every & (_DUMP_SLOTS - 1)))
+    out = torch.full((capacity + _DUMP_SLOTS,), fill, dtype=torch.long, device=mask.device)
+    out.scatter_(0, slot, every)
+    return out[:capacity], count, torch.arange(capacity, device=mask.device) >= count
+
+
+_DUMP_SLOTS = 1024
+
+
 def segment_starts(ray_indices: Int[Tensor, "num_samples"]) -> Int[Tensor, "num_samples"]:
     """For each sample, the position of the first sample of its ray (``ray_indices`` sorted)."""
     n = ray_indices.shape[0]

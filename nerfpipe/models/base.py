@@ -129,6 +129,23 @@ class Model(nn.Module):
         """Learning-rate multiplier at ``step`` (the trainer applies it to every group's ``initial_lr``)."""
         return 1.0
 
+    def graph_key(self) -> "tuple | None":
+        """What a training step's device work depends on beyond its inputs' values, for the trainer's CUDA graph
+        (:mod:`nerfpipe.training.cuda_graph`): everything the Python code of :meth:`get_outputs` and
+        :meth:`get_losses` branches on or sizes by, and where the tensors they read live. A captured step is
+        replayed while the key stays equal and captured anew when it changes. None (the default): this step
+        cannot be captured (it reads values back or is shaped by them); it runs as it is."""
+        return None
+
+    sample_capacity: "int | None" = None
+    """Samples a captured training step packs into (set by the trainer's CUDA graph, None otherwise: as many as
+    there are); models whose :meth:`graph_key` is None ignore it."""
+
+    def sample_count(self) -> "Tensor | None":
+        """The samples the latest training step needed, as a device scalar (not read back), or None: what the
+        trainer's graph checks its :attr:`sample_capacity` against."""
+        return None
+
     def stats(self) -> "dict[str, int | float]":
         """Figures for metrics.json (parameters, MB, occupied fraction, ...)."""
         n = sum(p.numel() for p in self.parameters())

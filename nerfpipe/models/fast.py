@@ -398,7 +398,10 @@ class FastModel(Model):
         self.register_buffer("object_box", aabb.clone(), persistent=False)
         self._object_diagonal = float((aabb[1] - aabb[0]).norm())
         """The object region's diagonal, read once (not from the device every step)."""
-        self._samples_per_ray = 0.0
+        self.register_buffer("_samples_per_ray", torch.zeros(()), persistent=False)
+        """Running mean of the samples shaded per training ray (on the device: a captured step updates it too)."""
+        self.register_buffer("_sample_count", torch.zeros((), dtype=torch.long), persistent=False)
+        """The samples of the latest training step packed into :attr:`sample_capacity` (before any were dropped)."""
         sparse = real and info.arc >= SPARSITY_MIN_ARC and info.num_images <= SPARSITY_MAX_VIEWS
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
 
@@ -459,7 +462,7 @@ class FastModel(Model):
 
         return self.grid.march_until_opaque(
             *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box,
-            generator=self.generator, fixed_shapes=self._fixed_shapes(rays),
+            generator=self.generator, fixed_shapes=self._fixed_shapes(rays), capacity=self.sample_capacity if self._fixed_shapes(rays) else None,
         )
 
     def _fixed_shapes(self, rays: RayBundle) -> bool:
@@ -496,7 +499,12 @@ class FastModel(Model):
         if self.appearance is not None and (self.training or self._view_appearance is not None):
             rgb = self._corrected(rgb, flat.cam_idx)
         if self.training:
-            self._samples_per_ray = 0.9 * self._samples_per_ray + 0.1 * len(samples) / max(len(flat), 1)
+            n = len(samples) if samples.count is None else samples.count
+            self._samples_per_ray.mul_(0.9).add_(0.1 * n / max(len(flat), 1))  # in place: a captured step updates it
+            if samples.count is not None:
+                self._sample_count.copy_(samples.count)
+            else:
+                self._sample_count.fill_(len(samples))
         if self.training and self.cfg.depth_weight > 0:
             extras.update(weights=weights, t_mids=t_mids, ray_indices=samples.ray_indices, t_exit=t_exit)
         if self.training and self.cfg.distortion_weight > 0:
@@ -510,6 +518,22 @@ class FastModel(Model):
             rgb=rgb.view(*shape, 3), depth=depth.view(shape), acc=acc.view(shape), stop_depth=stop,
             num_samples=len(samples), extras=extras,
         )
+
+    def graph_key(self) -> "tuple | None":
+        """The Python-level state a training step branches on and the tensors it reads (see ``Model.graph_key``):
+        in shapes known on the host every step can be captured; with rounds of early termination (the CPU's) none."""
+        device = self.march_box.device
+        fixed = device.type == "cuda" if self.cfg.fixed_shapes is None else self.cfg.fixed_shapes
+        if not (fixed and self.training and torch.is_grad_enabled() and self.cfg.early_termination) or self._view_appearance is not None:
+            return None
+        step = self._march_step()
+        flags = (self.behind is not None and self._step >= self.cfg.behind_from, self.sparsity_weight)
+        where = tuple((t.data_ptr(), tuple(t.shape)) for t in (*self.parameters(), *self.buffers()))
+        return (step, self.step_size, self.grid.max_intervals(step), self._min_alpha(), self.field.active_levels,
+                self.field.density_levels, *flags, where)
+
+    def sample_count(self) -> "Tensor | None":
+        return self._sample_count
 
     def _behind(self, rays: RayBundle, dir_code, t_exit, bg, acc, extras: dict, codes=None) -> Float[Tensor, "num_rays 3"]:
         """The colour behind the box for every ray, computed only where the box lets ``BEHIND_SEEN`` of it

@@ -82,6 +82,8 @@ class BenchConfig:
     """Torch device (auto: CUDA when present, else CPU)."""
     rays_per_step: "int | None" = None
     """Override every preset's rays per step."""
+    cuda_graph: "bool | None" = None
+    """Replay each training step as a CUDA graph (``TrainerConfig.cuda_graph``; None: on CUDA)."""
 
     def __post_init__(self) -> None:
         from nerfpipe.util.devices import check_device
@@ -122,7 +124,7 @@ def _trainer(scene, name: str, cfg: BenchConfig, out: Path):
         over = dict(over, rays_per_step=cfg.rays_per_step)
     tcfg = TrainerConfig(
         iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, seed=cfg.seed, device=cfg.device,
-        eval_scale=cfg.eval_scale, **over,
+        eval_scale=cfg.eval_scale, cuda_graph=cfg.cuda_graph, **over,
     )
     return Trainer(tcfg, scene, model_name, model_cfg, out / name.replace(":", "__").replace(",", "_"))
 
@@ -141,6 +143,7 @@ def _score(trainer, cfg: BenchConfig, name: str, budget: float, clock: _Clock) -
         "occupied_fraction": stats.get("occupied_fraction"), "samples_per_ray": stats.get("samples_per_ray"),
         "finest_resolution": stats.get("finest_resolution"),
         "eval_s": time.perf_counter() - t0, "loadavg": os.getloadavg()[0], "omp_wait": runtime.OMP_WAIT,
+        **({} if trainer.graph is None else {**trainer.graph.stats(), "graph_failed": trainer.graph.failed}),
     }
 
 

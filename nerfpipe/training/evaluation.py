@@ -363,6 +363,7 @@ def finish(trainer) -> dict:
         "resumed_at": trainer.history.get("resumed_at", []),
         "model": trainer.model_name,
         **stats,
+        **({} if trainer.graph is None else {"cuda_graph": {**trainer.graph.stats(), "failed": trainer.graph.failed}}),
     }
     checkpoint = out / CHECKPOINT
     if checkpoint.is_file():  # model, optimizer moments and random streams, as stored

@@ -14,7 +14,8 @@ Glossary:
     sync    an op (or tensor method) that makes the host wait for the device
     upload  a tensor built from Python values (``torch.tensor([...])``): a blocking host-to-device copy on
             CUDA (the stream is synchronised before the host memory is released), counted as a sync too
-    transfer  a copy between devices (``.to(device)``, ``.cpu()``): a sync unless ``non_blocking`` from the host;
+    transfer  a copy between devices (``.to(device)``, ``.cpu()``): a sync unless ``non_blocking`` from the host, or
+            ``non_blocking`` into pinned host memory (``copy_``, read once an event says it landed);
             seen only where there are two devices (on CUDA), not on a CPU-only run
 
 Example:
@@ -70,8 +71,8 @@ def _transfer(name: str, args, kwargs) -> "str | None":
         return None
     if src == dst:
         return None
-    if dst.type == "cpu":
-        return "device-to-host"
+    if dst.type == "cpu":  # into pinned memory without blocking (a copy_ only): the host does not wait
+        return None if name == "aten.copy_" and non_blocking and args[0].is_pinned() else "device-to-host"
     return None if non_blocking and src.type == "cpu" else "host-to-device"
 
 

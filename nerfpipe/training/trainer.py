@@ -38,7 +38,8 @@ from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.training import distributed
 from nerfpipe.training.averaging import ParameterAverage
 from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
-from nerfpipe.training.pixel_sampler import PixelSampler
+from nerfpipe.training.cuda_graph import GraphedStep
+from nerfpipe.training.pixel_sampler import PixelBatch, PixelSampler
 from nerfpipe.training.runs import CONFIG, load_model_state, to_dict, write_json
 from nerfpipe.util.devices import check_device
 from nerfpipe.util.errors import NerfpipeError, refuse_unless, require_all
@@ -173,6 +174,11 @@ class TrainerConfig:
     """Resolution factor of the videos."""
     resume: bool = False
     """Continue from the run folder's checkpoint.safetensors."""
+    cuda_graph: "bool | None" = None
+    """Capture each training step's forward, losses and backward as a CUDA graph and replay it
+    (:mod:`nerfpipe.training.cuda_graph`: the host launches one graph instead of hundreds of kernels; models whose
+    step reads values back, e.g. the fast model's rounds of early termination, step eagerly anyway). Default: on
+    CUDA; ignored elsewhere and under torchrun."""
     write_outputs: bool = True
     """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
 
@@ -282,6 +288,11 @@ class Trainer:
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
                                     max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles)
         self.sync: "distributed.BufferSync | None" = None
+        use_graph = cfg.cuda_graph if cfg.cuda_graph is not None else torch.device(cfg.device).type == "cuda"
+        self.graph: "GraphedStep | None" = None
+        """The training step as a replayed CUDA graph (:attr:`TrainerConfig.cuda_graph`), or None: eager steps."""
+        if use_graph and torch.device(cfg.device).type == "cuda" and not self.world.active:
+            self.graph = GraphedStep(self.model, self.optimizer, self.forward_backward)
         split = evaluation.eval_split(scene)
         if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
             check_images(scene, scene.splits[split])
@@ -380,11 +391,10 @@ class Trainer:
             self.sync()  # the hooks' changes (occupancy grid, box) as rank 0 made them
         self.apply_lr()
         batch = self.sampler.sample(self.rays, self.generator)
-        outputs = self.model.get_outputs(batch.rays, batch.background)
-        losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
-        self.optimizer.zero_grad(set_to_none=True)
-        sum(losses.values()).backward()
-        sq = ((outputs.rgb.detach() - batch.rgb) ** 2).mean(-1)
+        sq = self.graph(batch) if self.graph is not None else None
+        if sq is None:
+            self.optimizer.zero_grad(set_to_none=True)
+            sq = self.forward_backward(batch)
         self.sampler.update_errors(sq)
         mse = sq.mean()
         if self.world.active:  # the gradient (and the MSE) over the union of the ranks' rays
@@ -401,6 +411,14 @@ class Trainer:
             self.average.update(self.step)
         self.fire(Callback.AFTER_TRAIN_ITERATION)
         return mse
+
+    def forward_backward(self, batch: PixelBatch) -> Float[Tensor, "num_rays"]:
+        """The model's outputs and losses for ``batch`` and their gradients, added into ``.grad``; the squared colour
+        error of each ray (what a CUDA graph captures: :mod:`nerfpipe.training.cuda_graph`)."""
+        outputs = self.model.get_outputs(batch.rays, batch.background)
+        losses = self.model.get_losses(outputs, batch.rgb, batch.depth)
+        sum(losses.values()).backward()
+        return ((outputs.rgb.detach() - batch.rgb) ** 2).mean(-1)
 
     def clock(self) -> float:
         """Seconds on the configured clock (see :attr:`TrainerConfig.clock`)."""
