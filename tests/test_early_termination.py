@@ -190,26 +190,29 @@ def test_model_training_outputs_and_gradients_unchanged(step, fast):
 
 @pytest.mark.parametrize("step", [0, 40])
 def test_sample_slots_render_and_train_as_the_packed_samples(step):
-    """Samples packed into more slots than they need (zero-length padding on the last ray) give the same
-    outputs and gradients; into fewer, the count says how many there were and only the last rays lose samples."""
+    """Occupied intervals and samples packed into more slots than they need (the padding adds nothing) give the same
+    outputs and gradients as the step that reads their number back; into fewer, the counts say how many there were
+    and only the last rays lose samples (fewer sample slots) or see intervals as empty (fewer interval slots)."""
     r, target = camera_rays(200, seed=6), torch.rand(200, 3, generator=torch.Generator().manual_seed(7))
     runs = []
-    for slots in (None, "more", "fewer"):
+    for slots in (None, "more", "fewer samples", "fewer intervals"):
         model = solid_model(True, fixed_shapes=True)
         model.train()
         model._step = step
         if slots is not None:
-            model.sample_capacity = runs[0][2] + 777 if slots == "more" else runs[0][2] // 2
+            n, m = runs[0][2]
+            model.sample_capacity = {"more": (n + 777, m + 99), "fewer samples": (n // 2, m + 99), "fewer intervals": (n + 777, m // 2)}[slots]
         torch.manual_seed(3)
         out = model.get_outputs(r, torch.zeros(200, 3))
         sum(model.get_losses(out, target).values()).backward()
-        runs.append((out, {n: p.grad for n, p in model.named_parameters() if p.grad is not None}, int(model.sample_count())))
-    (ref, ref_grads, n), (more, grads, n_more), (fewer, _, n_fewer) = runs
-    assert n == ref.num_samples > 50 and n_more == n_fewer == n
+        runs.append((out, {n: p.grad for n, p in model.named_parameters() if p.grad is not None}, model.sample_count().tolist()))
+    (ref, ref_grads, (n, m)), (more, grads, c_more), (fewer, _, c_fewer), (fewer_i, _, c_fewer_i) = runs
+    assert n == ref.num_samples > 50 and m >= n and c_more == c_fewer == [n, m] and c_fewer_i[1] == m
     assert more.num_samples == n + 777 and fewer.num_samples == n // 2
     for key in ("rgb", "depth", "acc"):
         torch.testing.assert_close(getattr(more, key), getattr(ref, key), rtol=1e-6, atol=1e-6)
     for name in ref_grads:
         torch.testing.assert_close(grads[name], ref_grads[name], rtol=1e-5, atol=1e-9)
-    changed = (fewer.acc != ref.acc).nonzero()[:, 0]
-    assert len(changed) > 0 and changed.min() > 0  # the first rays keep theirs
+    for short in (fewer, fewer_i):
+        changed = (short.acc != ref.acc).nonzero()[:, 0]
+        assert len(changed) > 0 and changed.min() > 0  # the first rays keep theirs

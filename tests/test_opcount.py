@@ -85,14 +85,16 @@ apart) and the direction encoding is one product with a constant matrix: 1,190 /
 coarse span either (it saves nothing when every ray is marched over the longest span). Since the box is tightened to
 the occupied cells' large pieces (session 21) this scene's rays take one more round now and then: 1,240 with rounds.
 Issue 13's goal is 300: it takes fused kernels."""
-MAX_SYNCS_PER_STEP = {"rounds": 9.0, "fixed_shapes": 1.0, "graph": 0.0}
+MAX_SYNCS_PER_STEP = {"rounds": 9.0, "fixed_shapes": 2.0, "graph": 0.0}
 """Host syncs per steady step at most. With rounds: 73.9 at commit 9f82e41 (40.3 of them constant uploads); 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each
 for the rays that start and the samples kept, one for camera undistortion's models, 3 per occupancy refresh;
 8.6 since the sampler reads the models once, 8.1 since a refresh reads nothing back, 8.6 since the tighter box
 (one more round on some steps). In shapes known on the host:
-1, the ``nonzero`` that packs the samples kept (issue 13's goal). A replayed CUDA graph (CUDA's default since session
-23): none, its samples packed into slots known beforehand."""
+1, the ``nonzero`` that packs the samples kept (issue 13's goal); on the CPU 2 since session 23 (the occupied intervals
+are gathered before their density is evaluated: 3.2x faster there), on CUDA's eager step still 1 (asserted below). A
+replayed CUDA graph (CUDA's default since session 23): none, its intervals and samples packed into slots known
+beforehand."""
 
 
 @pytest.fixture(
@@ -120,18 +122,20 @@ def steady_counts(request, tiny_lego, tmp_path_factory):
     counts = count_steps(trainer.train_step, COUNTED)
     if mode == "graph":  # every counted step was a replay
         assert trainer.graph is not None and trainer.graph.failed is None and trainer.graph.replays >= COUNTED, trainer.graph.stats()
-    return mode, counts
+    return (device, mode), counts
 
 
 def test_steady_fast_training_step_stays_within_its_op_and_sync_budget(steady_counts):
-    mode, counts = steady_counts
+    (device, mode), counts = steady_counts
+    if mode == "fixed_shapes" and device == "cuda":
+        assert counts.syncs <= 1.0, counts
     assert counts.ops <= MAX_OPS_PER_STEP[mode], counts
     assert counts.syncs <= MAX_SYNCS_PER_STEP[mode], counts
 
 
 def test_no_constant_is_uploaded_and_no_loss_read_back_in_a_steady_step(steady_counts):
     """Constants are built once (not ``torch.tensor(list)`` per call) and the loss is read when logged, not per step."""
-    mode, steady_counts = steady_counts
+    (device, mode), steady_counts = steady_counts
     assert steady_counts.uploads == 0, steady_counts
     # the reads left: the marching's nonzero (in shapes known on the host, the one packing the samples kept); an
     # occupancy refresh reads nothing back, and the grid's box is read once per box (when it is tightened); a loss
@@ -140,6 +144,6 @@ def test_no_constant_is_uploaded_and_no_loss_read_back_in_a_steady_step(steady_c
         assert steady_counts.sync_ops == {}, steady_counts
         return
     assert set(steady_counts.sync_ops) == {"aten.nonzero"}, steady_counts
-    if mode == "fixed_shapes":
-        assert steady_counts.sync_ops["aten.nonzero"] == COUNTED, steady_counts
+    if mode == "fixed_shapes":  # the samples kept, and on the CPU the occupied intervals
+        assert steady_counts.sync_ops["aten.nonzero"] == COUNTED * (2 if device == "cpu" else 1), steady_counts
     assert "Tensor.tolist" not in steady_counts.sync_ops, steady_counts  # undistortion's models: read once by the sampler

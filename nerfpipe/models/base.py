@@ -137,13 +137,14 @@ class Model(nn.Module):
         cannot be captured (it reads values back or is shaped by them); it runs as it is."""
         return None
 
-    sample_capacity: "int | None" = None
-    """Samples a captured training step packs into (set by the trainer's CUDA graph, None otherwise: as many as
-    there are); models whose :meth:`graph_key` is None ignore it."""
+    sample_capacity: "tuple[int, ...] | None" = None
+    """Slots a captured training step packs its variable-sized work into, one number per entry of
+    :meth:`sample_count` (set by the trainer's CUDA graph; None otherwise: as many as there are). Models whose
+    :meth:`graph_key` is None ignore it."""
 
     def sample_count(self) -> "Tensor | None":
-        """The samples the latest training step needed, as a device scalar (not read back), or None: what the
-        trainer's graph checks its :attr:`sample_capacity` against."""
+        """What the latest training step needed of each of :attr:`sample_capacity`'s slots, on the device (not read
+        back), or None: what the trainer's graph checks the slots against."""
         return None
 
     def stats(self) -> "dict[str, int | float]":

@@ -400,8 +400,9 @@ class FastModel(Model):
         """The object region's diagonal, read once (not from the device every step)."""
         self.register_buffer("_samples_per_ray", torch.zeros(()), persistent=False)
         """Running mean of the samples shaded per training ray (on the device: a captured step updates it too)."""
-        self.register_buffer("_sample_count", torch.zeros((), dtype=torch.long), persistent=False)
-        """The samples of the latest training step packed into :attr:`sample_capacity` (before any were dropped)."""
+        self.register_buffer("_sample_count", torch.zeros(2, dtype=torch.long), persistent=False)
+        """The samples the latest training step kept and the occupied intervals it evaluated (0 where not known: the
+        rounds), before any were dropped from :attr:`sample_capacity`'s slots."""
         sparse = real and info.arc >= SPARSITY_MIN_ARC and info.num_images <= SPARSITY_MAX_VIEWS
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
 
@@ -502,9 +503,11 @@ class FastModel(Model):
             n = len(samples) if samples.count is None else samples.count
             self._samples_per_ray.mul_(0.9).add_(0.1 * n / max(len(flat), 1))  # in place: a captured step updates it
             if samples.count is not None:
-                self._sample_count.copy_(samples.count)
+                self._sample_count[0].copy_(samples.count)
             else:
-                self._sample_count.fill_(len(samples))
+                self._sample_count[0].fill_(len(samples))
+            if samples.intervals is not None:
+                self._sample_count[1].copy_(samples.intervals)
         if self.training and self.cfg.depth_weight > 0:
             extras.update(weights=weights, t_mids=t_mids, ray_indices=samples.ray_indices, t_exit=t_exit)
         if self.training and self.cfg.distortion_weight > 0:

@@ -19,9 +19,10 @@ on a side stream (the warm-up that capturing needs, and the measure of the sampl
 Random draws inside the graph come from the model's generator, registered with the graph, so each replay draws
 new numbers and a checkpoint's generator state goes on from there.
 
-Samples are packed into a fixed number of slots, ``sample_capacity`` (:func:`~nerfpipe.functional.packed.pack_static`):
-:data:`HEADROOM` times the most a step has needed, in multiples of :data:`QUANTUM`. The graph keeps the largest
-count of its replays on the device; after each replay that is copied to pinned host memory without waiting, and
+What varies in size from step to step is packed into a fixed number of slots, the model's ``sample_capacity``
+(:func:`~nerfpipe.functional.packed.pack_static`; for the fast model the occupied intervals whose density is evaluated,
+and the samples kept): :data:`HEADROOM` times the most a step has needed, in multiples of :data:`QUANTUM`. The graph
+keeps the largest counts of its replays on the device; after each replay that is copied to pinned host memory without waiting, and
 read once the copy has landed (an event; waited for at the end of each window of :data:`WINDOW` replays). A step that
 needed more than the slots lost its last rays' samples (they rendered as their background), and the next step is
 captured with more slots; where a window needed much less than the slots, the step is captured with fewer.
@@ -104,20 +105,22 @@ class GraphedStep:
         self.key: "tuple | None" = None
         self.warmed: "tuple | None" = None
         """The key the latest eager warm-up ran with: the next step with that key is captured."""
-        self.capacity = 0
+        self.capacity: "tuple[int, ...]" = ()
         self.static = None
         self.sq: "Float[Tensor, 'num_rays'] | None" = None
-        self.peak = torch.zeros((), dtype=torch.long, device=self.device)
-        self.pinned = torch.zeros(1, dtype=torch.long).pin_memory()
+        count = model.sample_count()
+        n = 0 if count is None else count.numel()
+        self.peak = torch.zeros(n, dtype=torch.long, device=self.device)
+        self.pinned = torch.zeros(n, dtype=torch.long).pin_memory()
         self._pinned_view = self.pinned.numpy()  # read on the host without an ATen op (nothing waits for the device)
         self.event: "torch.cuda.Event | None" = None
-        self.most = 0
-        """The largest sample count read back since the last capture or window."""
+        self.most: "tuple[int, ...]" = (0,) * n
+        """The largest count of each slot kind read back since the last capture or window."""
         self.window = 0
         self.captures, self.replays, self.eager_steps, self.overflows = 0, 0, 0, 0
         self.capture_seconds = 0.0
-        self.window_most = 0
-        """The largest sample count of the latest whole window (a figure for the run's metrics)."""
+        self.window_most: "tuple[int, ...]" = (0,) * n
+        """The largest counts of the latest whole window (a figure for the run's metrics)."""
         self.grads: "list[tuple[Tensor, Tensor]]" = []
         """Each parameter with the gradient tensor the graph writes."""
         self.failed: "str | None" = None
@@ -137,17 +140,17 @@ class GraphedStep:
         if self.graph is None:
             if self.warmed != key:
                 return self._warm_up(batch, key)
-            if not self._capture(batch, capacity_for(self.most), key):
+            if not self._capture(batch, self._slots(), key):
                 return None
         elif self._read_count(wait=self.window >= WINDOW):  # a step needed more slots than there are
             self.overflows += 1
-            if not self._capture(batch, capacity_for(self.most), key):
+            if not self._capture(batch, self._slots(), key):
                 return None
-        elif self.event is None and self.window >= WINDOW:  # a window's largest count has landed: fewer slots?
-            if capacity_for(self.most) < SHRINK_BELOW * self.capacity and not self._capture(batch, capacity_for(self.most), key):
+        elif self.event is None and self.window >= WINDOW:  # a window's largest counts have landed: fewer slots?
+            if any(n < SHRINK_BELOW * c for n, c in zip(self._slots(), self.capacity)) and not self._capture(batch, self._slots(), key):
                 return None
             self.peak.zero_()
-            self.window_most, self.most, self.window = self.most, 0, 0
+            self.window_most, self.most, self.window = self.most, (0,) * len(self.most), 0
         for dst, src in zip(_tensors(self.static), _tensors(batch)):
             dst.copy_(src, non_blocking=True)
         for param, grad in self.grads:  # the graph writes these: a caller that set .grad to None must not lose them
@@ -156,7 +159,7 @@ class GraphedStep:
         self.graph.replay()
         self.replays += 1
         self.window += 1
-        self.pinned[0].copy_(self.peak, non_blocking=True)
+        self.pinned.copy_(self.peak, non_blocking=True)
         self.event = torch.cuda.Event()
         self.event.record()
         return self.sq
@@ -169,8 +172,12 @@ class GraphedStep:
             return False
         self.event.synchronize()
         self.event = None
-        self.most = max(self.most, int(self._pinned_view[0]))
-        return self.most > self.capacity
+        self.most = tuple(max(a, int(b)) for a, b in zip(self.most, self._pinned_view))
+        return any(n > c for n, c in zip(self.most, self.capacity))
+
+    def _slots(self) -> "tuple[int, ...]":
+        """Slots for the counts seen (:func:`capacity_for` each)."""
+        return tuple(capacity_for(n) for n in self.most)
 
     def _drop(self) -> None:
         self.graph, self.key, self.static, self.sq, self.event, self.grads = None, None, None, None, None, []
@@ -185,13 +192,13 @@ class GraphedStep:
             sq = self.forward_backward(batch)
         torch.cuda.current_stream(self.device).wait_stream(self.stream)
         count = self.model.sample_count()
-        self.most = int(count) if count is not None else 0
+        self.most = () if count is None else tuple(int(n) for n in count.tolist())  # the read back of a warm-up
         self.warmed = key
         self.eager_steps += 1
         return sq
 
-    def _capture(self, batch, capacity: int, key: tuple) -> bool:
-        """Capture the step with ``capacity`` sample slots (``batch`` fills its static inputs; nothing runs until
+    def _capture(self, batch, capacity: "tuple[int, ...]", key: tuple) -> bool:
+        """Capture the step with ``capacity`` slots (``batch`` fills its static inputs; nothing runs until
         the replay). False where capturing failed: :attr:`failed` says why, and the run goes on eagerly."""
         self._drop()
         self.model.sample_capacity = capacity
@@ -216,7 +223,7 @@ class GraphedStep:
         self.graph, self.sq, self.key, self.capacity = graph, sq, key, capacity
         self.grads = [(p, p.grad) for group in self.optimizer.param_groups for p in group["params"] if p.grad is not None]
         self.peak.zero_()
-        self.most, self.window = 0, 0
+        self.most, self.window = (0,) * len(self.most), 0
         self.captures += 1
         self.capture_seconds += time.perf_counter() - start
         return True
@@ -224,8 +231,8 @@ class GraphedStep:
     def stats(self) -> "dict[str, float]":
         """Counts for the run's metrics: captures, replays, eager steps, overflows."""
         return {"graph_captures": self.captures, "graph_replays": self.replays, "graph_eager_steps": self.eager_steps,
-                "graph_overflows": self.overflows, "graph_sample_slots": self.capacity, "graph_capture_s": round(self.capture_seconds, 3),
-                "graph_window_most_samples": self.window_most}
+                "graph_overflows": self.overflows, "graph_slots": list(self.capacity), "graph_capture_s": round(self.capture_seconds, 3),
+                "graph_window_most": list(self.window_most)}
 
 
 def _clone(obj):
