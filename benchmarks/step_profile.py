@@ -3,11 +3,10 @@ marching mode, peak memory, and on CUDA the GPU's busy time, kernel launches and
 profiler), so that a host-bound step (the GPU idle between tiny kernels) shows as such.
 
 Run: ``python -m benchmarks.step_profile LEGO --rays 4096 16384 --warm 600 --steps 50`` (``--device cuda`` where there
-is one; ``--modes fixed rounds`` compares the marching in shapes known on the host, CUDA's default, with the rounds
-of early termination, the CPU's). Prints one JSON line per configuration (and, on CUDA with ``--tables``, the
-profiler's tables) and appends them to ``--log`` when given. Session 22's H200 figures in the README came from a
-script outside the repo that measured the same way; this benchmark was written after the GPU was given back and has
-run on the CPU only so far.
+is one; ``--modes graph fixed rounds`` compares the step replayed as a CUDA graph, CUDA's default, with the same step
+launched eagerly and with the rounds of early termination, the CPU's). Prints one JSON line per configuration (and, on
+CUDA with ``--tables``, the profiler's tables) and appends them to ``--log`` when given. Session 23's H200 figures in
+the README come from it (``benchmarks/cuda_checks.sh`` runs it with the other device checks).
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
