@@ -1,14 +1,16 @@
 """The training step as a replayed CUDA graph (:mod:`nerfpipe.training.cuda_graph`) against the eager step: the same
-gradients for the same batch and random stream, and the same training. CUDA only (skipped elsewhere); the CPU-side
-pieces it rests on (the sample slots, a step that reads nothing back) are tested in ``test_packed``,
-``test_early_termination`` and ``test_unbounded``."""
+gradients for the same batch and random stream, and the same training (CUDA only); and its state machine (when it warms
+up, captures, replays, grows and shrinks the slots, gives up) on the CPU with stand-ins for its CUDA calls. The pieces
+it rests on (the slots, a step that reads nothing back) are tested in ``test_packed``, ``test_early_termination`` and
+``test_unbounded``."""
 
+import contextlib
 import math
 
 import pytest
 import torch
 
-from nerfpipe.training.cuda_graph import HEADROOM, QUANTUM, capacity_for
+from nerfpipe.training.cuda_graph import HEADROOM, QUANTUM, GraphedStep, capacity_for
 
 def test_capacity_has_headroom_in_whole_quanta():
     for n in (0, 1, QUANTUM, 10**6):
@@ -120,3 +122,114 @@ def test_a_real_capture_step_replays_with_the_eager_gradients():
     assert graphed.keys() == eager.keys() and any(k.startswith("behind.") for k in eager)
     for k in eager:
         torch.testing.assert_close(graphed[k], eager[k], rtol=1e-3, atol=1e-6)
+
+
+# ---------------------------------------------------------------- the state machine on the CPU
+class _Landed:
+    """An event that has always landed."""
+
+    def query(self) -> bool:
+        return True
+
+    def synchronize(self) -> None:
+        pass
+
+
+class _Replay:
+    """A stand-in for a captured graph: a replay runs the body again on the static inputs, its gradients zeroed first
+    and its output written into the captured one (as a graph writes the same memory)."""
+
+    def __init__(self, step, body, out) -> None:
+        self.step, self.body, self.out = step, body, out
+
+    def replay(self) -> None:
+        for _, grad in self.step.grads:
+            grad.zero_()
+        self.out.copy_(self.body())
+
+
+class EmulatedGraphs(GraphedStep):
+    """:class:`GraphedStep` with its CUDA calls replaced (streams, pinned memory, events, capture): the rest, when to warm
+    up, capture, replay, grow and shrink the slots, runs as on a GPU."""
+
+    def _new_stream(self):
+        return None
+
+    def _host_buffer(self, n: int):
+        return torch.zeros(n, dtype=torch.long)
+
+    def _record_event(self):
+        return _Landed()
+
+    @contextlib.contextmanager
+    def _side_stream(self):
+        yield
+
+    def _record(self, body):
+        out = body()  # a capture runs nothing; here the first replay's work is done twice
+        return _Replay(self, body, out), out
+
+
+def _cpu_trainer(tiny_lego, out, **model):
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
+
+    cfg = TrainerConfig(iters=10**6, rays_per_step=512, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False, device="cpu")
+    fast = FastConfig(preset="small", levels=(16, 32, 48), coarse_to_fine_every=8, tighten_step=24, fine_steps_from=0, fixed_shapes=True, **model)
+    trainer = Trainer(cfg, tiny_lego, "fast", fast, out)
+    trainer.model.train()
+    assert trainer.graph is None  # never on the CPU by itself
+    return trainer
+
+
+def test_the_graph_state_machine_captures_where_the_step_changes_and_trains_as_eager_steps(tiny_lego, tmp_path):
+    torch.set_num_threads(1)
+    psnr = {}
+    for emulated in (False, True):
+        trainer = _cpu_trainer(tiny_lego, tmp_path / str(emulated))
+        if emulated:
+            trainer.graph = EmulatedGraphs(trainer.model, trainer.optimizer, trainer.forward_backward)
+        losses = [trainer.train_step() for _ in range(100)]
+        psnr[emulated] = -10 * math.log10(float(torch.stack(losses[-20:]).mean()))
+    g = trainer.graph
+    # a capture after each warm-up: levels switched on (8, 16), the warm-up over, the box tightened (24), ...
+    assert g.failed is None and g.overflows == 0 and 3 <= g.captures <= g.eager_steps <= g.captures + 1, g.stats()
+    assert g.replays == 100 - g.eager_steps
+    assert all(c >= n for c, n in zip(g.capacity, trainer.model.sample_count().tolist())), (g.capacity, trainer.model.sample_count())
+    assert abs(psnr[True] - psnr[False]) < 0.5, psnr
+
+
+def test_too_few_slots_are_seen_and_captured_anew_and_too_many_shrink(tiny_lego, tmp_path, monkeypatch):
+    import nerfpipe.training.cuda_graph as cg
+
+    torch.set_num_threads(1)
+    trainer = _cpu_trainer(tiny_lego, tmp_path)
+    trainer.graph = g = EmulatedGraphs(trainer.model, trainer.optimizer, trainer.forward_backward)
+    while trainer.step < 30:  # past the changes of the step's code
+        trainer.train_step()
+    monkeypatch.setattr(cg, "HEADROOM", 0.5)  # slots for half of what a step needs, from the next window's check on
+    for _ in range(cg.WINDOW + 4):
+        trainer.train_step()
+    assert g.overflows >= 2, g.stats()  # seen at the next read back, and captured anew (with too few again)
+    monkeypatch.setattr(cg, "HEADROOM", 4.0)
+    for _ in range(4):  # the overflows' captures: four times what a step needed of what overflowed (intervals dropped as
+        trainer.train_step()  # empty left fewer samples kept, so the samples' slots may come from a smaller count)
+    big, overflows, captures = g.capacity, g.overflows, g.captures
+    assert any(c >= 3 * n for c, n in zip(big, trainer.model.sample_count().tolist())), (big, trainer.model.sample_count())
+    monkeypatch.setattr(cg, "HEADROOM", 1.15)
+    for _ in range(cg.WINDOW + 1):
+        trainer.train_step()
+    assert g.overflows == overflows and g.captures == captures + 1, g.stats()  # one shrink, at the window's end
+    assert all(a < b for a, b in zip(g.capacity, big)), (big, g.stats())
+
+
+def test_a_failed_capture_leaves_the_run_stepping_eagerly(tiny_lego, tmp_path):
+    class Failing(EmulatedGraphs):
+        def _record(self, body):
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+    trainer = _cpu_trainer(tiny_lego, tmp_path)
+    trainer.graph = g = Failing(trainer.model, trainer.optimizer, trainer.forward_backward)
+    for _ in range(6):
+        assert torch.isfinite(trainer.train_step())
+    assert "not permitted" in g.failed and g.captures == 0 and g.replays == 0 and trainer.step == 6

@@ -30,6 +30,8 @@ captured with more slots; where a window needed much less than the slots, the st
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import fields, is_dataclass
 
 import torch
@@ -100,7 +102,7 @@ class GraphedStep:
     def __init__(self, model, optimizer: torch.optim.Optimizer, forward_backward) -> None:
         self.model, self.optimizer, self.forward_backward = model, optimizer, forward_backward
         self.device = next(model.parameters()).device
-        self.stream = torch.cuda.Stream(self.device)
+        self.stream = self._new_stream()
         self.graph: "torch.cuda.CUDAGraph | None" = None
         self.key: "tuple | None" = None
         self.warmed: "tuple | None" = None
@@ -111,7 +113,7 @@ class GraphedStep:
         count = model.sample_count()
         n = 0 if count is None else count.numel()
         self.peak = torch.zeros(n, dtype=torch.long, device=self.device)
-        self.pinned = torch.zeros(n, dtype=torch.long).pin_memory()
+        self.pinned = self._host_buffer(n)
         self._pinned_view = self.pinned.numpy()  # read on the host without an ATen op (nothing waits for the device)
         self.event: "torch.cuda.Event | None" = None
         self.most: "tuple[int, ...]" = (0,) * n
@@ -160,8 +162,7 @@ class GraphedStep:
         self.replays += 1
         self.window += 1
         self.pinned.copy_(self.peak, non_blocking=True)
-        self.event = torch.cuda.Event()
-        self.event.record()
+        self.event = self._record_event()
         return self.sq
 
     def _read_count(self, wait: bool = False) -> bool:
@@ -187,10 +188,8 @@ class GraphedStep:
         """One eager step on the side stream (a capture needs one there first), which measures the samples a
         step packs (one read back per capture)."""
         self.optimizer.zero_grad(set_to_none=True)
-        self.stream.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(self.stream):
+        with self._side_stream():
             sq = self.forward_backward(batch)
-        torch.cuda.current_stream(self.device).wait_stream(self.stream)
         count = self.model.sample_count()
         self.most = () if count is None else tuple(int(n) for n in count.tolist())  # the read back of a warm-up
         self.warmed = key
@@ -204,17 +203,9 @@ class GraphedStep:
         self.model.sample_capacity = capacity
         self.static = _clone(batch)
         self.optimizer.zero_grad(set_to_none=True)  # the graph allocates the gradients it writes
-        graph = torch.cuda.CUDAGraph()
         start = time.perf_counter()
-        generator = getattr(self.model, "generator", None)
         try:
-            if generator is not None and generator.device.type == "cuda":
-                graph.register_generator_state(generator)
-            with torch.cuda.graph(graph, stream=self.stream, capture_error_mode="thread_local"):
-                sq = self.forward_backward(self.static)
-                count = self.model.sample_count()
-                if count is not None:
-                    torch.maximum(self.peak, count, out=self.peak)
+            graph, sq = self._record(self._body)
         except Exception as exc:  # an op that cannot be captured: the run goes on eagerly
             self.failed = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
             self._drop()
@@ -228,8 +219,46 @@ class GraphedStep:
         self.capture_seconds += time.perf_counter() - start
         return True
 
-    def stats(self) -> "dict[str, float]":
-        """Counts for the run's metrics: captures, replays, eager steps, overflows."""
+    def _body(self) -> "Float[Tensor, 'num_rays']":
+        """What the graph holds: the step on the static batch, and the largest counts kept on the device."""
+        sq = self.forward_backward(self.static)
+        count = self.model.sample_count()
+        if count is not None:
+            torch.maximum(self.peak, count, out=self.peak)
+        return sq
+
+    # the CUDA calls, one method each (tests/test_cuda_graph.py runs the rest on the CPU with stand-ins for them)
+    def _new_stream(self):
+        return torch.cuda.Stream(self.device)
+
+    def _host_buffer(self, n: int) -> Tensor:
+        return torch.zeros(n, dtype=torch.long).pin_memory()
+
+    def _record_event(self):
+        event = torch.cuda.Event()
+        event.record()
+        return event
+
+    @contextmanager
+    def _side_stream(self) -> "Iterator[None]":
+        """Work on the side stream, ordered after what was queued before and before what comes after."""
+        self.stream.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(self.stream):
+            yield
+        torch.cuda.current_stream(self.device).wait_stream(self.stream)
+
+    def _record(self, body) -> "tuple[torch.cuda.CUDAGraph, Tensor]":
+        """``body()`` captured as a CUDA graph (nothing runs until :meth:`replay`), with its output."""
+        graph = torch.cuda.CUDAGraph()
+        generator = getattr(self.model, "generator", None)
+        if generator is not None and generator.device.type == "cuda":
+            graph.register_generator_state(generator)
+        with torch.cuda.graph(graph, stream=self.stream, capture_error_mode="thread_local"):
+            out = body()
+        return graph, out
+
+    def stats(self) -> "dict[str, int | float | list[int]]":
+        """Counts for the run's metrics: captures, replays, eager steps, overflows, slots, capture seconds."""
         return {"graph_captures": self.captures, "graph_replays": self.replays, "graph_eager_steps": self.eager_steps,
                 "graph_overflows": self.overflows, "graph_slots": list(self.capacity), "graph_capture_s": round(self.capture_seconds, 3),
                 "graph_window_most": list(self.window_most)}
