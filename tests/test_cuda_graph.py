@@ -124,6 +124,25 @@ def test_a_real_capture_step_replays_with_the_eager_gradients():
         torch.testing.assert_close(graphed[k], eager[k], rtol=1e-3, atol=1e-6)
 
 
+@CUDA
+def test_a_graphed_run_checkpoints_and_resumes(tiny_lego, tmp_path):
+    """The model's generator, registered with the graphs, is saved in checkpoints and restored on resume; the resumed
+    run captures anew and ends where a straight run does (to rounding: it warms up where the straight run replays)."""
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
+
+    model = FastConfig(preset="small", levels=(16, 32, 48), coarse_to_fine_every=8, tighten_step=24, fine_steps_from=0)
+    base = dict(iters=80, rays_per_step=1024, eval_every=0, video_frames=0, checkpoint_every=20, seed=0, write_outputs=False, device="cuda")
+    straight = Trainer(TrainerConfig(**base), tiny_lego, "fast", model, tmp_path / "straight")
+    a = straight.train()
+    Trainer(TrainerConfig(**{**base, "iters": 50}), tiny_lego, "fast", model, tmp_path / "split").train()
+    resumed = Trainer(TrainerConfig(**{**base, "resume": True}), tiny_lego, "fast", model, tmp_path / "split")
+    b = resumed.train()
+    assert resumed.step == 80 and resumed.graph.failed is None and resumed.graph.replays > 20, resumed.graph.stats()
+    assert a["cuda_graph"]["failed"] is None and a["cuda_graph"]["graph_replays"] > 60, a["cuda_graph"]
+    assert abs(a["val_psnr"] - b["val_psnr"]) < 0.3, (a["val_psnr"], b["val_psnr"])
+
+
 # ---------------------------------------------------------------- the state machine on the CPU
 class _Landed:
     """An event that has always landed."""
