@@ -463,15 +463,20 @@ class FastModel(Model):
         def sigma_fn(samples: PackedSamples) -> Tensor:
             return self.field.density(samples.points(rays.origins, rays.directions))
 
+        fixed = self._fixed_shapes(rays)
         return self.grid.march_until_opaque(
             *args, sigma_fn, self.cfg.min_transmittance, self._min_alpha(), jitter=self.training, aabb=self.march_box,
-            generator=self.generator, fixed_shapes=self._fixed_shapes(rays), capacity=self.sample_capacity if self._fixed_shapes(rays) else None,
+            generator=self.generator, fixed_shapes=fixed, capacity=self.sample_capacity if fixed else None,
         )
 
     def _fixed_shapes(self, rays: RayBundle) -> bool:
         """Whether this training step runs in shapes known on the host (:attr:`FastConfig.fixed_shapes`; rendering
         never does: it marches many more rays, whose longest span would not fit)."""
-        fixed = rays.origins.device.type == "cuda" if self.cfg.fixed_shapes is None else self.cfg.fixed_shapes
+        return self._fixed_on(rays.origins.device)
+
+    def _fixed_on(self, device: torch.device) -> bool:
+        """:meth:`_fixed_shapes` for a training step on ``device``."""
+        fixed = device.type == "cuda" if self.cfg.fixed_shapes is None else self.cfg.fixed_shapes
         return fixed and self.training
 
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
@@ -527,9 +532,7 @@ class FastModel(Model):
     def graph_key(self) -> "tuple | None":
         """The Python-level state a training step branches on and the tensors it reads (see ``Model.graph_key``):
         in shapes known on the host every step can be captured; with rounds of early termination (the CPU's) none."""
-        device = self.march_box.device
-        fixed = device.type == "cuda" if self.cfg.fixed_shapes is None else self.cfg.fixed_shapes
-        if not (fixed and self.training and torch.is_grad_enabled() and self.cfg.early_termination) or self._view_appearance is not None:
+        if not (self._fixed_on(self.march_box.device) and torch.is_grad_enabled() and self.cfg.early_termination) or self._view_appearance is not None:
             return None
         step = self._march_step()
         flags = (self.behind is not None and self._step >= self.cfg.behind_from, self.sparsity_weight)

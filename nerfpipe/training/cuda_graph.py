@@ -75,18 +75,14 @@ def _tensors(obj) -> "list[Tensor]":
     return out
 
 
-def _same_layout(a, b) -> bool:
-    """Whether two batches have the same fields present with the same shapes and dtypes."""
-    if type(a) is not type(b):
-        return False
-    for f in fields(a):
-        x, y = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(x, Tensor) or isinstance(y, Tensor):
-            if not (isinstance(x, Tensor) and isinstance(y, Tensor) and x.shape == y.shape and x.dtype == y.dtype):
-                return False
-        elif is_dataclass(x) and not _same_layout(x, y):
-            return False
-    return True
+def _layout(obj) -> tuple:
+    """The fields of a (nested) dataclass with the shape and dtype of each tensor (None for a field without one):
+    two batches with the same layout fit the same static inputs."""
+    out = [type(obj)]
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        out.append((v.shape, v.dtype) if isinstance(v, Tensor) else _layout(v) if is_dataclass(v) else None)
+    return tuple(out)
 
 
 class GraphedStep:
@@ -109,6 +105,8 @@ class GraphedStep:
         """The key the latest eager warm-up ran with: the next step with that key is captured."""
         self.capacity: "tuple[int, ...]" = ()
         self.static = None
+        self.layout: "tuple | None" = None
+        """:func:`_layout` of the static inputs."""
         self.sq: "Float[Tensor, 'num_rays'] | None" = None
         count = model.sample_count()
         n = 0 if count is None else count.numel()
@@ -137,7 +135,7 @@ class GraphedStep:
         if key is None:
             self._drop()
             return None
-        if self.graph is not None and (key != self.key or not _same_layout(batch, self.static)):
+        if self.graph is not None and (key != self.key or _layout(batch) != self.layout):
             self._drop()  # the step's code or the memory it reads changed: warm up and capture again
         if self.graph is None:
             if self.warmed != key:
@@ -201,7 +199,7 @@ class GraphedStep:
         the replay). False where capturing failed: :attr:`failed` says why, and the run goes on eagerly."""
         self._drop()
         self.model.sample_capacity = capacity
-        self.static = _clone(batch)
+        self.static, self.layout = _clone(batch), _layout(batch)
         self.optimizer.zero_grad(set_to_none=True)  # the graph allocates the gradients it writes
         start = time.perf_counter()
         try:

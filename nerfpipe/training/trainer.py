@@ -288,11 +288,9 @@ class Trainer:
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
                                     max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles)
         self.sync: "distributed.BufferSync | None" = None
-        use_graph = cfg.cuda_graph if cfg.cuda_graph is not None else torch.device(cfg.device).type == "cuda"
-        self.graph: "GraphedStep | None" = None
+        use_graph = cfg.cuda_graph is not False and torch.device(cfg.device).type == "cuda" and not self.world.active
+        self.graph = GraphedStep(self.model, self.optimizer, self.forward_backward) if use_graph else None
         """The training step as a replayed CUDA graph (:attr:`TrainerConfig.cuda_graph`), or None: eager steps."""
-        if use_graph and torch.device(cfg.device).type == "cuda" and not self.world.active:
-            self.graph = GraphedStep(self.model, self.optimizer, self.forward_backward)
         split = evaluation.eval_split(scene)
         if split != "train":  # decoded now (the sampler decoded train's): a broken one is an error before out_dir exists
             check_images(scene, scene.splits[split])
