@@ -178,7 +178,7 @@ class FastField(nn.Module):
 
     def density_tv(self, num_cells: int, generator: "torch.Generator | None" = None) -> Float[Tensor, ""]:
         """Total variation of the finest dense density level on ``num_cells`` random vertices."""
-        level = max(i for i in range(len(self.density_grid.tables)) if not self.hashed(i))
+        level = max(i for i in range(len(self.density_grid.tables)) if not self.hashed(i) and not self.density_grid.sparse(i))
         table, res = self.density_grid.tables[level], self.density_grid.resolutions[level]
         ijk = torch.stack([torch.randint(0, r - 1, (num_cells,), device=table.device, generator=generator) for r in res], dim=-1)
         row = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]

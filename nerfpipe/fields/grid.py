@@ -12,6 +12,13 @@ stored in row ``(i·p_i XOR j·p_j XOR k) mod rows`` of a table of ``rows`` (a p
 is set by the table, not by the resolution; neighbours along the last axis stay in adjacent rows
 (its prime is 1), as in the dense layout.
 
+A level may also be *sparse* (Plenoxels / DVGO's idea with blocks): its vertices are stored in blocks of
+``BLOCK`` x ``BLOCK`` x ``BLOCK`` (4 x 4 x 4) vertices, only for the blocks that the occupied space needs, and a small map holds each
+block's first row in the table (-1: not stored). Row ``first + (li * BLOCK + lj) * BLOCK + lk`` holds the vertex
+at local position ``(li, lj, lk)`` of its block. A corner of an unstored block reads as 0 (its weight is zeroed, so
+no gradient reaches any row). The table has free slots (rows of zeros that no map entry points at, so they get no
+gradient and Adam leaves them at zero): blocks that the occupancy needs later are stored there, on the device.
+
 Glossary:
     x01     points in the unit cube ``[0, 1]^3`` (the scene box mapped to it)
     res     vertices per axis ``(rx, ry, rz)``
@@ -20,16 +27,20 @@ Glossary:
 """
 
 import functools
+import math
 
 import torch
 from torch import nn
 
 from nerfpipe.functional.gather import weighted_gather
-from nerfpipe.util.typing import Float, Int, Tensor
+from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 # corner offsets (di, dj, dk) in the order of the eight trilinear weights
 _CORNERS = ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1), (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1))
 
+
+BLOCK = 4
+"""Vertices per axis of a sparse level's blocks."""
 
 # hashing primes per axis (instant-ngp's; the last axis gets 1 so that its neighbours share cache lines)
 HASH_PRIMES = (2654435761, 805459861, 1)
@@ -68,16 +79,27 @@ def trilinear_corners_levels(
     """:func:`trilinear_corners` of several levels at the same points at once (level ``l`` in row ``l``; all
     dense, or all hashed into tables of ``rows`` rows): one pass of a few dozen tensor operations for all of them,
     not one per level (on a GPU each is a kernel launch)."""
-    size, last, strides, offsets, primes = _level_constants(tuple(tuple(r) for r in resolutions), x01.dtype, x01.device)
+    _, _, strides, offsets, primes = _level_constants(tuple(tuple(r) for r in resolutions), x01.dtype, x01.device)
+    lo, w = trilinear_lo_levels(x01, resolutions)
+    lo = lo.long()
+    if rows is not None:
+        return hashed_rows(lo, rows, primes), w
+    base = (lo * strides).sum(-1)
+    return base[..., None] + offsets, w
+
+
+def trilinear_lo_levels(
+    x01: Float[Tensor, "num_points 3"], resolutions: "tuple[tuple[int, int, int], ...]"
+) -> "tuple[Float[Tensor, 'levels num_points 3'], Float[Tensor, 'levels num_points 8']]":
+    """The lower corner vertex of the cell around each point (whole numbers, as floats) and the eight trilinear
+    weights, for several levels at once (the part of :func:`trilinear_corners_levels` that every layout shares)."""
+    size, last, *_ = _level_constants(tuple(tuple(r) for r in resolutions), x01.dtype, x01.device)
     pos = x01.clamp(0.0, 1.0) * size  # [L, N, 3]
     lo = torch.minimum(pos.floor(), last)
     frac = pos - lo
     w1 = torch.stack([1 - frac, frac], dim=-1)  # [L, N, 3, 2]
     w = (w1[..., 0, :, None, None] * w1[..., 1, None, :, None] * w1[..., 2, None, None, :]).flatten(-3)
-    if rows is not None:
-        return hashed_rows(lo.long(), rows, primes), w
-    base = (lo.long() * strides).sum(-1)
-    return base[..., None] + offsets, w
+    return lo, w
 
 
 def hashed_rows(lo: Int[Tensor, "*bs 3"], rows: int, primes: "Int[Tensor, '3'] | None" = None) -> Int[Tensor, "*bs 8"]:
@@ -93,6 +115,84 @@ def hashed_rows(lo: Int[Tensor, "*bs 3"], rows: int, primes: "Int[Tensor, '3'] |
 def hashed_row_reference(i: int, j: int, k: int, rows: int) -> int:
     """The row of vertex ``(i, j, k)`` of a hashed level, one vertex at a time (the reference)."""
     return ((i * HASH_PRIMES[0]) ^ (j * HASH_PRIMES[1]) ^ (k * HASH_PRIMES[2])) % rows
+
+
+def block_rows(
+    lo: Float[Tensor, "num_points 3"], block_map: Int[Tensor, "num_blocks"], blocks: "tuple[int, int, int]"
+) -> "tuple[Int[Tensor, 'num_points 8'], Bool[Tensor, 'num_points 8']]":
+    """Table rows of the eight vertices ``lo + (di, dj, dk)`` of a sparse level (in the order of ``_CORNERS``; ``lo``:
+    whole numbers, as floats) and whether each is stored; an unstored one gets some row below ``BLOCK^3`` (its weight is
+    to be zeroed). ``blocks``: blocks per axis; ``block_map``: first table row of each block, in row order (-1: not
+    stored).
+
+    Each corner's block index and row in its block are sums of one term per axis; the eight corners' sums are one
+    small matrix product of the terms, not a dozen broadcast integer operations (3x slower on the CPU). The product is
+    exact: in integers on the CPU, in float64 elsewhere (CUDA has no integer matrix product, and float32 ones may run
+    in TF32)."""
+    both = torch.stack([lo, lo + 1], dim=-1)  # [N, 3, 2]: the two vertex positions per axis
+    blk = torch.floor(both * (1.0 / BLOCK))
+    terms = torch.cat([blk.flatten(1), (both - BLOCK * blk).flatten(1)], dim=1)  # [N, 12]
+    dtype = torch.int64 if lo.device.type == "cpu" else torch.float64
+    sums = (terms.to(dtype) @ _block_selection(blocks, dtype, lo.device)).long()  # [N, 16]: block index, row in block
+    base = block_map.index_select(0, sums[:, :8].reshape(-1)).view(-1, 8)
+    stored = base >= 0
+    return (base + sums[:, 8:]).clamp_(min=0), stored
+
+
+@functools.lru_cache(maxsize=64)
+def _block_selection(blocks: "tuple[int, int, int]", dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The matrix that sums :func:`block_rows`' per-axis terms into each corner's block index (columns 0-7) and row in
+    its block (columns 8-15), built once per block layout, dtype and device."""
+    strides = ((blocks[1] * blocks[2], blocks[2], 1), (BLOCK * BLOCK, BLOCK, 1))
+    out = torch.zeros(12, 16, dtype=dtype)
+    for part in range(2):
+        for c, corner in enumerate(_CORNERS):
+            for axis in range(3):
+                out[part * 6 + axis * 2 + corner[axis], part * 8 + c] = strides[part][axis]
+    return out.to(device)
+
+
+def block_row_reference(i: int, j: int, k: int, block_map: "list[int]", blocks: "tuple[int, int, int]") -> int:
+    """The row of vertex ``(i, j, k)`` of a sparse level, one vertex at a time (-1: its block is not stored);
+    ``block_map``: first table row of each block (-1: not stored)."""
+    b = BLOCK
+    base = block_map[((i // b) * blocks[1] + j // b) * blocks[2] + k // b]
+    return -1 if base < 0 else base + ((i % b) * b + j % b) * b + k % b
+
+
+def blocks_per_axis(res: "tuple[int, int, int]") -> "tuple[int, int, int]":
+    """Blocks of ``BLOCK`` vertices per axis that cover a level of ``res`` vertices."""
+    return tuple(-(-int(n) // BLOCK) for n in res)  # type: ignore[return-value]
+
+
+def needed_blocks(
+    occupied: Bool[Tensor, "rx ry rz"], resolutions: "list[tuple[int, int, int]]", dilation: int = 1
+) -> "list[Bool[Tensor, 'bx by bz']]":
+    """For levels of ``resolutions`` vertices over a box, the blocks that a trilinear read anywhere in the ``occupied``
+    cells of a grid over the same box (dilated by ``dilation`` of its cells) reaches: a block is needed when a level
+    cell touching one of its vertices overlaps such a cell. Exact, through one summed-area table of the occupancy."""
+    grid = tuple(occupied.shape)
+    sat = occupied.to(torch.int32)
+    for axis in range(3):
+        sat = sat.cumsum(axis, dtype=torch.int32)
+    sat = torch.nn.functional.pad(sat, (1, 0, 1, 0, 1, 0))  # sat[i, j, k]: occupied cells in [0, i) x [0, j) x [0, k)
+    out = []
+    for res in resolutions:
+        lo, hi = [], []
+        for n, r, nb in zip(res, grid, blocks_per_axis(res)):
+            first = torch.arange(nb, device=occupied.device) * BLOCK  # a block's first vertex; its cells: first - 1 .. first + BLOCK - 1
+            a = (first - 1).clamp(min=0).double() / max(n - 1, 1)
+            z = (first + BLOCK).clamp(max=n - 1).double() / max(n - 1, 1)
+            lo.append(((a * r).floor().long() - dilation).clamp(0, r))
+            hi.append(((z * r).ceil().long() + dilation).clamp(0, r))
+        i0, j0, k0 = lo[0][:, None, None], lo[1][None, :, None], lo[2][None, None, :]
+        i1, j1, k1 = hi[0][:, None, None], hi[1][None, :, None], hi[2][None, None, :]
+        count = (
+            sat[i1, j1, k1] - sat[i0, j1, k1] - sat[i1, j0, k1] - sat[i1, j1, k0]
+            + sat[i0, j0, k1] + sat[i0, j1, k0] + sat[i1, j0, k0] - sat[i0, j0, k0]
+        )
+        out.append(count > 0)
+    return out
 
 
 def grid_gather(
@@ -121,6 +221,7 @@ class DenseGridEncoding(nn.Module):
 
     Coarse levels see many samples per vertex and converge in a few steps; fine levels add the
     detail (a multiresolution encoding as in instant-ngp, without hashing: every vertex is stored).
+    A dense level can be made sparse (:meth:`sparsify`): only the blocks of vertices that occupied space needs stay.
 
     Args:
         resolutions: vertices per axis of each level.
@@ -143,24 +244,132 @@ class DenseGridEncoding(nn.Module):
         self.tables = nn.ParameterList(
             nn.Parameter(torch.empty(h or n, channels).uniform_(-init_scale, init_scale)) for n, h in zip(full, self.hash_rows)
         )
+        for i in range(len(self.resolutions)):
+            self.register_buffer(f"block_map_{i}", torch.zeros(0, dtype=torch.long))
+            """First table row of each block of a sparse level, in row order (-1: not stored); empty for other levels."""
+            self.register_buffer(f"slots_used_{i}", torch.zeros((), dtype=torch.long))
+            """Slots of a sparse level's table in use (the rest are free: zeros)."""
+            self.register_buffer(f"blocks_missing_{i}", torch.zeros((), dtype=torch.long), persistent=False)
+            """Blocks the latest :meth:`grow` needed but found no free slot for (read as zeros)."""
+
+    def block_map(self, level: int) -> Int[Tensor, "num_blocks"]:
+        return getattr(self, f"block_map_{level}")
+
+    def slots_used(self, level: int) -> Int[Tensor, ""]:
+        """Blocks a sparse level stores (a device scalar)."""
+        return getattr(self, f"slots_used_{level}")
+
+    def blocks_missing(self, level: int) -> Int[Tensor, ""]:
+        """Blocks the latest :meth:`grow` of a sparse level needed but had no free slot for (a device scalar)."""
+        return getattr(self, f"blocks_missing_{level}")
+
+    def sparse(self, level: int) -> bool:
+        """Whether the level is stored in blocks (:meth:`sparsify`)."""
+        return self.block_map(level).numel() > 0
 
     def corners(self, level: int, x01: Float[Tensor, "num_points 3"]) -> "tuple[Tensor, Tensor]":
-        """:func:`trilinear_corners` of one level (hashed or dense)."""
+        """:func:`trilinear_corners` of one level (hashed, dense or sparse)."""
+        if self.sparse(level):
+            return self._sparse_corners(level, trilinear_lo_levels(x01, (self.resolutions[level],)), 0)
         return trilinear_corners(x01, self.resolutions[level], self.hash_rows[level])
+
+    def _sparse_corners(self, level: int, lo_w: "tuple[Tensor, Tensor]", i: int) -> "tuple[Tensor, Tensor]":
+        """Rows and weights of a sparse level from row ``i`` of :func:`trilinear_lo_levels`' output (unstored corners
+        weigh 0)."""
+        lo, w = lo_w
+        rows, stored = block_rows(lo[i], self.block_map(level), blocks_per_axis(self.resolutions[level]))
+        return rows, torch.where(stored, w[i], 0.0)
 
     def corners_of(
         self, levels: int, x01: Float[Tensor, "num_points 3"], x_hashed: "Float[Tensor, 'num_points 3'] | None" = None
     ) -> "list[tuple[Tensor, Tensor]]":
-        """:meth:`corners` of the coarsest ``levels`` levels, the dense ones at ``x01`` together and the hashed ones
-        at ``x_hashed`` (default ``x01``) together (:func:`trilinear_corners_levels`), in level order."""
+        """:meth:`corners` of the coarsest ``levels`` levels, the dense ones at ``x01`` together, the sparse ones at
+        ``x01`` together and the hashed ones at ``x_hashed`` (default ``x01``) together
+        (:func:`trilinear_corners_levels`), in level order."""
         out: "list[tuple[Tensor, Tensor] | None]" = [None] * levels
+        sparse = [lv for lv in range(levels) if self.sparse(lv)]
+        if sparse:
+            lo_w = trilinear_lo_levels(x01, tuple(self.resolutions[lv] for lv in sparse))
+            for i, lv in enumerate(sparse):
+                out[lv] = self._sparse_corners(lv, lo_w, i)
         for rows in dict.fromkeys(self.hash_rows[:levels]):
-            group = [lv for lv in range(levels) if self.hash_rows[lv] == rows]
+            group = [lv for lv in range(levels) if self.hash_rows[lv] == rows and out[lv] is None]
+            if not group:
+                continue
             x = x01 if rows is None or x_hashed is None else x_hashed
             idx, w = trilinear_corners_levels(x, tuple(self.resolutions[lv] for lv in group), rows)
             for i, lv in enumerate(group):
                 out[lv] = (idx[i], w[i])
         return out  # type: ignore[return-value]
+
+    @torch.no_grad()
+    def sparsify(self, level: int, blocks: Bool[Tensor, "bx by bz"], headroom: float = 0.25) -> None:
+        """Store a dense level in blocks: only the ``blocks`` given (:func:`needed_blocks`), their vertices' values
+        kept, in a table with ``headroom`` times as many free slots (zeros) for blocks needed later (:meth:`grow`)."""
+        res = self.resolutions[level]
+        if self.hash_rows[level] is not None or self.sparse(level):
+            raise ValueError(f"level {level} is not dense")
+        nb = blocks_per_axis(res)
+        if tuple(blocks.shape) != nb:
+            raise ValueError(f"blocks of level {level} are {nb}, got {tuple(blocks.shape)}")
+        table = self.tables[level]
+        flat = blocks.reshape(-1).to(table.device)
+        count = int(flat.sum())
+        slots = torch.full((flat.numel(),), -1, dtype=torch.long, device=table.device)
+        slots[flat] = torch.arange(count, device=table.device) * BLOCK**3  # each block's first row
+        new = table.new_zeros(max(1, math.ceil(count * (1 + headroom))) * BLOCK**3, table.shape[1])
+        ijk = torch.stack(torch.meshgrid(*(torch.arange(n, device=table.device) for n in res), indexing="ij"), -1).reshape(-1, 3)
+        blk, loc = ijk // BLOCK, ijk % BLOCK
+        first = slots[(blk[:, 0] * nb[1] + blk[:, 1]) * nb[2] + blk[:, 2]]
+        keep = first >= 0
+        rows = first + (loc[:, 0] * BLOCK + loc[:, 1]) * BLOCK + loc[:, 2]
+        dense_rows = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]
+        new[rows[keep]] = table.data[dense_rows[keep]]
+        table.data = new
+        setattr(self, f"block_map_{level}", slots)
+        self.slots_used(level).fill_(count)
+
+    @torch.no_grad()
+    def grow(self, level: int, blocks: Bool[Tensor, "bx by bz"]) -> None:
+        """Store the ``blocks`` of a sparse level that are not stored yet, in free slots, on the device (nothing is
+        read back); those beyond the table's capacity stay unstored and are counted in ``blocks_missing_{level}``."""
+        slots, used = self.block_map(level), self.slots_used(level)
+        new = blocks.reshape(-1).to(slots.device) & (slots < 0)
+        slot = used + new.cumsum(0) - 1
+        ok = new & (slot < self.capacity(level))
+        slots.copy_(torch.where(ok, slot * BLOCK**3, slots))
+        used.add_(ok.sum())
+        self.blocks_missing(level).copy_((new & ~ok).sum())
+
+    @torch.no_grad()
+    def reserve(self, level: int, blocks: int) -> None:
+        """Give a sparse level's table room for ``blocks`` more blocks (free slots of zeros appended after its rows).
+        The table's parameter is marked with ``rows_appended`` (its former row count), so that the optimizer's moments
+        and the parameter average of its rows are kept (:func:`~nerfpipe.training.trainer.drop_stale_optimizer_state`)."""
+        table = self.tables[level]
+        if blocks <= 0:
+            return
+        rows = table.shape[0]
+        table.data = torch.cat([table.data, table.new_zeros(blocks * BLOCK**3, table.shape[1])])
+        table.rows_appended = rows
+
+    def capacity(self, level: int) -> int:
+        """Blocks a sparse level's table holds."""
+        return self.tables[level].shape[0] // BLOCK**3
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        """Checkpoints from before sparse levels have no block maps (every level dense); a sparse level's map and
+        table take the checkpoint's sizes."""
+        for i in range(len(self.resolutions)):
+            key = f"{prefix}block_map_{i}"
+            state_dict.setdefault(key, torch.zeros(0, dtype=torch.long))
+            state_dict.setdefault(f"{prefix}slots_used_{i}", torch.zeros((), dtype=torch.long))
+            if state_dict[key].shape != self.block_map(i).shape:
+                setattr(self, f"block_map_{i}", torch.empty_like(state_dict[key], device=self.block_map(i).device))
+            table = state_dict.get(f"{prefix}tables.{i}")
+            if state_dict[key].numel() and table is not None and table.shape != self.tables[i].shape:
+                self.tables[i].data = torch.empty_like(table, device=self.tables[i].device)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def out_dim(self) -> int:

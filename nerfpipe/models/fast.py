@@ -26,7 +26,7 @@ from nerfpipe.data.rays import RayBundle
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ray_aabb_intersect
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
-from nerfpipe.fields.grid import axis_resolution
+from nerfpipe.fields.grid import axis_resolution, needed_blocks
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
@@ -119,6 +119,9 @@ def compact_capacity(info: SceneInfo) -> dict:
     log2_rows = int(min(19, max(17, round(math.log2(pixels / 32)))))
     return dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
 
+
+SPARSE_CHECK_EVERY = 256
+"""Steps between the checks (one host read each) whether a sparse level ran out of free blocks (then its table grows)."""
 
 BEHIND_SEEN = 1e-3
 """Transmittance of the box below which a ray's colour behind the box is not computed (it changes the
@@ -226,6 +229,16 @@ class FastConfig:
     every occupied cell (the rule until session 21; at step 128 28.08, at 1.07x the seconds per step); the pieces' box at step 32 / 48 /
     96 / 128: 28.38 / 28.36 / 28.43 / 28.30 dB after 300; a second tightening later lost 0.04-0.3 dB (each
     resampling blurs); colmap_mouse (7 held-out views at 400 px) 24.10 dB after 300 steps against 24.08."""
+    sparse_min_vertices: int = 1 << 17
+    """When the box is tightened, dense levels of more vertices than this are stored sparse from then on
+    (:meth:`~nerfpipe.fields.grid.DenseGridEncoding.sparsify`): only the blocks of 4 x 4 x 4 vertices that a read in the
+    occupied cells (dilated by ``sparse_dilation`` cells) reaches, plus ``sparse_headroom`` free blocks that cells
+    occupied later take (on the device, at each occupancy refresh). Values and gradients where the field is read are the
+    dense level's (0: every level stays dense)."""
+    sparse_dilation: int = 0
+    """Occupancy cells around the occupied ones whose blocks a sparse level stores too."""
+    sparse_headroom: float = 0.1
+    """Free blocks of a sparse level, as a fraction of the blocks stored when it was made sparse."""
     box_margin: float = 0.05
     """Fraction of the box size added around the occupied cells when tightening."""
     box_min_share: float = 0.01
@@ -698,6 +711,7 @@ class FastModel(Model):
         if step >= occ.warmup_steps and step % occ.update_every == 0:
             self.grid.update(self.field.density, self.step_size, generator=self.generator, rotation=step // occ.update_every)
             self.march_box.copy_(self.grid.occupied_aabb())
+            self._grow_sparse(check=step % SPARSE_CHECK_EVERY == 0)
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
 
@@ -717,6 +731,8 @@ class FastModel(Model):
     @torch.no_grad()
     def tighten(self) -> None:
         """Shrink the field's box to the occupied cells (plus a margin) and resample its grids."""
+        if any(self.field.density_grid.sparse(lv) for lv in range(len(self.field.density_grid.resolutions))):
+            raise RuntimeError("the box is tightened once, before its levels are stored sparse")
         box = self.grid.supported_aabb(self.cfg.box_min_share)
         margin = self.cfg.box_margin * (box[1] - box[0])
         old = self.field.aabb
@@ -732,6 +748,42 @@ class FastModel(Model):
         self.grid.density.zero_()
         self.grid.update(self.field.density, self.step_size, full=True, generator=self.generator)
         self.march_box.copy_(self.grid.occupied_aabb())
+        self._sparsify()
+
+    def _needed_blocks(self, levels: "list[int]") -> "list[Tensor]":
+        """The blocks of some levels that reads in the occupied cells reach (:func:`~nerfpipe.fields.grid.needed_blocks`;
+        the occupancy grid and the field share the box once it is tightened)."""
+        r = self.grid.cfg.resolution
+        resolutions = [self.field.density_grid.resolutions[lv] for lv in levels]
+        return needed_blocks(self.grid.binary.view(r, r, r), resolutions, self.cfg.sparse_dilation) if levels else []
+
+    def _sparsify(self) -> None:
+        """Store the dense levels above :attr:`FastConfig.sparse_min_vertices` sparse (both grids alike: they share
+        their corners)."""
+        if not self.cfg.sparse_min_vertices:
+            return
+        grids = (self.field.density_grid, self.field.feature_grid)
+        levels = [
+            lv for lv, res in enumerate(grids[0].resolutions)
+            if grids[0].hash_rows[lv] is None and not grids[0].sparse(lv) and math.prod(res) > self.cfg.sparse_min_vertices
+        ]
+        for level, blocks in zip(levels, self._needed_blocks(levels)):
+            for grid in grids:
+                grid.sparsify(level, blocks, self.cfg.sparse_headroom)
+
+    def _grow_sparse(self, check: bool = False) -> None:
+        """Store the blocks that newly occupied cells reach, in the sparse levels' free slots; with ``check`` (a host
+        read), give a level that ran out of them room for what it missed and ``sparse_headroom`` more."""
+        grids = (self.field.density_grid, self.field.feature_grid)
+        levels = [lv for lv in range(len(grids[0].resolutions)) if grids[0].sparse(lv)]
+        for level, blocks in zip(levels, self._needed_blocks(levels)):
+            for grid in grids:
+                grid.grow(level, blocks)
+            if check and int(grids[0].blocks_missing(level)):
+                need = int(grids[0].slots_used(level)) + int(grids[0].blocks_missing(level))
+                for grid in grids:
+                    grid.reserve(level, math.ceil(need * (1 + self.cfg.sparse_headroom)) - grid.capacity(level))
+                    grid.grow(level, blocks)
 
     @staticmethod
     def _resample(table, old_res, old_box, new_box, new_res) -> Tensor:
@@ -773,9 +825,21 @@ class FastModel(Model):
             finest_resolution=float(max(self.field.density_grid.resolutions[-1])),
             finest_voxel=self.field.voxel_size(len(self.field.density_grid.resolutions) - 1),
             hashed_levels=float(sum(h is not None for h in self.field.density_grid.hash_rows)),
+            **self._sparse_stats(),
             sparsity_weight=float(self.sparsity_weight),
         )
         return out
+
+    def _sparse_stats(self) -> "dict[str, float]":
+        """Sparse levels, the share of their blocks stored and the blocks needed but not stored (no free slot left)."""
+        grid = self.field.density_grid
+        levels = [lv for lv in range(len(grid.resolutions)) if grid.sparse(lv)]
+        if not levels:
+            return {}
+        blocks = sum(grid.block_map(lv).numel() for lv in levels)
+        stored = sum(int(grid.slots_used(lv)) for lv in levels)
+        missing = sum(int(grid.blocks_missing(lv)) for lv in levels)
+        return dict(sparse_levels=float(len(levels)), sparse_stored_share=stored / max(blocks, 1), sparse_blocks_missing=float(missing))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         """Accept checkpoints whose grids were resampled to a tightened box."""

@@ -18,12 +18,18 @@ from torch import nn
 from nerfpipe.util.typing import Tensor
 
 
+def appended_rows(p: Tensor, old: Tensor) -> bool:
+    """Whether ``p`` has ``old``'s shape with rows appended, as its ``rows_appended`` mark (the former row count, set by
+    :meth:`~nerfpipe.fields.grid.DenseGridEncoding.reserve`) says: what was kept for ``old``'s rows stays valid."""
+    return getattr(p, "rows_appended", None) == old.shape[0] and p.shape[1:] == old.shape[1:] and p.shape[0] > old.shape[0]
+
+
 class ParameterAverage:
     """The running average of ``model``'s parameters from step ``start`` on.
 
     Args:
         model: whose parameters are averaged (by name; a parameter whose shape changes, a grid resampled to a
-            tightened box, restarts the average).
+            tightened box, restarts the average, but one only given more rows keeps it for its rows).
         start: the first step (the trainer's count after the step) that enters the average.
         decay: weight of the average so far in each update once past the warm start (``1 - decay`` is the new
             step's weight, never less than ``1 / count``: the first ``1 / (1 - decay)`` steps count alike).
@@ -42,6 +48,11 @@ class ParameterAverage:
         """Add the parameters after training step ``step`` (nothing before :attr:`start`)."""
         if step < self.start:
             return
+        if self.values is not None:  # a sparse grid level given room for more blocks: its rows' average is kept
+            for k, v in self.values.items():
+                p = self.params[k]
+                if v.shape != p.shape and appended_rows(p, v):
+                    self.values[k] = torch.cat([v, p.detach()[v.shape[0] :]])
         if self.values is None or any(v.shape != self.params[k].shape for k, v in self.values.items()):
             self.values, self.count = {k: p.detach().clone() for k, p in self.params.items()}, 1
             return
