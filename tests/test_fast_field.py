@@ -420,3 +420,14 @@ def test_voxel_size_is_read_once_per_box_and_follows_a_new_box():
     assert c.ops == 0
     field.aabb.copy_(torch.tensor([[-1.0, -1.0, -1.0], [0.0, 1.0, 1.0]]))  # a tightened box
     assert field.voxel_size(1) == direct(1) == 0.0625 and field.voxel_size(0) == direct(0)
+
+
+def test_both_trilinear_weight_routes_agree_bit_for_bit(device):
+    """The per-axis products (the CPU's route) and the broadcast products (other devices') of the trilinear weights:
+    chosen by device, so each is tested on every device."""
+    from nerfpipe.fields.grid import trilinear_weights
+
+    frac = torch.rand(3, 200, 3, generator=torch.Generator().manual_seed(9)).to(device)
+    a, b = trilinear_weights(frac, per_axis=True), trilinear_weights(frac, per_axis=False)
+    assert torch.equal(a, b)
+    torch.testing.assert_close(a.sum(-1), torch.ones(3, 200, device=device))

@@ -232,3 +232,23 @@ def test_a_sparse_level_out_of_free_blocks_grows_its_table_at_a_check():
     assert int(grid.blocks_missing(1)) == 0 and grid.capacity(1) > capacity
     assert model.field.feature_grid.capacity(1) == grid.capacity(1)
     assert torch.equal(model.field.feature_grid.block_map(1), grid.block_map(1))
+
+
+def test_block_rows_stay_exact_when_float32_products_may_lose_precision(monkeypatch):
+    """Where float32 matrix products may run in reduced precision, the corner sums run in float64: the same rows."""
+    import nerfpipe.fields.grid as grid
+
+    nb = (300, 300, 300)  # block indices up to 2.7e7: beyond float32's whole numbers, so float64 is used here anyway
+    g = torch.Generator().manual_seed(8)
+    lo = torch.stack([torch.randint(0, 4 * n - 1, (50,), generator=g) for n in nb], -1).float()
+    block_map = torch.arange(nb[0] * nb[1] * nb[2]) * BLOCK**3
+    rows, _ = block_rows(lo.double(), block_map, nb)
+    b = BLOCK  # block_map holds block n's first row at n * b^3: the row of a vertex written out
+    ref = [(((i // b) * nb[1] + j // b) * nb[2] + k // b) * b**3 + ((i % b) * b + j % b) * b + k % b for i, j, k in lo.long().tolist()]
+    assert rows[:, 0].tolist() == ref
+    small = (3, 2, 3)
+    lo = torch.stack([torch.randint(0, 4 * n - 1, (50,), generator=g) for n in small], -1).float()
+    block_map = torch.arange(18) * BLOCK**3
+    exact, _ = block_rows(lo, block_map, small)
+    monkeypatch.setattr(grid, "_exact_float32", lambda device: False)
+    assert torch.equal(block_rows(lo, block_map, small)[0], exact)

@@ -167,6 +167,9 @@ class FastConfig:
     log2_hashmap_size: "int | None" = None
     """Override the preset's hashing: levels with more than 2^this vertices are hashed into 2^this rows
     (0: every level dense)."""
+    log2_dense_max: "int | None" = None
+    """Levels of at most 2^this vertices are not hashed, even above ``log2_hashmap_size``'s rows: they start dense and are
+    stored sparse once the box is tightened (``sparse_min_vertices``). None: ``log2_hashmap_size``."""
     feature_channels: "int | None" = None
     """Override the preset's colour features per vertex and level."""
     hidden: "int | None" = None
@@ -387,7 +390,7 @@ class FastModel(Model):
         ``spacing`` level."""
         self.field = FastField(
             aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"],
-            max_rows=None if log2_rows is None else 2**log2_rows,
+            max_rows=None if log2_rows is None else 2**log2_rows, dense_max=None if cfg.log2_dense_max is None else 2**cfg.log2_dense_max,
         )
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
         n_levels = len(self.capacity["levels"])
