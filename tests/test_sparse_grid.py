@@ -123,19 +123,19 @@ def tiny_info():
     return SceneInfo(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), near=0.5, far=6.0, num_images=10, pixels_per_image=1024)
 
 
-def ball_model(sparse_min_vertices, headroom=0.25):
+def ball_model(sparse_min_vertices, headroom=0.25, thickness=0.03):
     """A model whose field is a spherical shell of density (the occupancy knows it) with random colour features,
     tightened."""
     cfg = FastConfig(
-        levels=(8, 40), feature_channels=2, hidden=16, log2_hashmap_size=0, sparse_min_vertices=sparse_min_vertices, sparse_headroom=headroom,
-        occupancy=OccupancyGridConfig(resolution=40, warmup_steps=0, update_every=1),
+        levels=(8, 64), feature_channels=2, hidden=16, log2_hashmap_size=0, sparse_min_vertices=sparse_min_vertices, sparse_headroom=headroom,
+        occupancy=OccupancyGridConfig(resolution=64, warmup_steps=0, update_every=1),
     )
     torch.manual_seed(0)
     model = cfg.setup(tiny_info())
     with torch.no_grad():
         for table, res in zip(model.field.density_grid.tables, model.field.density_grid.resolutions):
             ijk = torch.stack(torch.meshgrid(*(torch.linspace(-1, 1, n) for n in res), indexing="ij"), -1).reshape(-1, 3)
-            table[:, 0] = torch.where((ijk.norm(dim=-1) - 0.5).abs() < 0.05, 8.0, -8.0) + 0.5 * torch.randn(len(ijk))
+            table[:, 0] = torch.where((ijk.norm(dim=-1) - 0.5).abs() < thickness, 8.0, -8.0) + 0.5 * torch.randn(len(ijk))
         for table in model.field.feature_grid.tables:
             table.normal_()
     model.grid.update(model.field.density, model.step_size, full=True)
@@ -171,12 +171,17 @@ def test_a_sparse_field_renders_as_its_dense_field_and_round_trips_through_a_che
     assert torch.equal(c.rgb, b.rgb)
 
 
+def test_a_level_whose_blocks_would_fill_most_of_it_stays_dense():
+    model = ball_model(1000, thickness=0.3)  # a thick shell: nearly every block of the tightened box is needed
+    assert not model.field.density_grid.sparse(1) and not model.field.feature_grid.sparse(1)
+
+
 def test_sparse_levels_store_the_blocks_that_newly_occupied_cells_reach():
     model = ball_model(1000)
     grid = model.field.density_grid
     used = int(grid.slots_used_1)
     with torch.no_grad():  # more of the box becomes occupied: its blocks are stored at the next refresh
-        model.grid.binary.view(40, 40, 40)[:, :, :2] = True
+        model.grid.binary.view(64, 64, 64)[:, :, :2] = True
     model._grow_sparse()
     assert int(grid.slots_used_1) > used
     assert torch.equal(model.field.feature_grid.block_map(1), grid.block_map(1))
@@ -225,7 +230,7 @@ def test_a_sparse_level_out_of_free_blocks_grows_its_table_at_a_check():
     grid = model.field.density_grid
     capacity = grid.capacity(1)
     with torch.no_grad():
-        model.grid.binary.view(40, 40, 40)[:, :, :3] = True
+        model.grid.binary.view(64, 64, 64)[:, :, :3] = True
     model._grow_sparse()  # no check: what does not fit is counted, read as zeros
     assert int(grid.blocks_missing(1)) > 0 and grid.capacity(1) == capacity
     model._grow_sparse(check=True)
