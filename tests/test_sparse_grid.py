@@ -231,10 +231,12 @@ def test_a_sparse_level_out_of_free_blocks_grows_its_table_at_a_check():
     capacity = grid.capacity(1)
     with torch.no_grad():
         model.grid.binary.view(64, 64, 64)[:, :, :3] = True
-    model._grow_sparse()  # no check: what does not fit is counted, read as zeros
+    model._grow_sparse()  # what does not fit is counted, read as zeros
     assert int(grid.blocks_missing(1)) > 0 and grid.capacity(1) == capacity
-    model._grow_sparse(check=True)
-    assert int(grid.blocks_missing(1)) == 0 and grid.capacity(1) > capacity
+    model._reserve_sparse()  # at the next check: room for them
+    assert grid.capacity(1) > capacity
+    model._grow_sparse()  # stored at the next refresh
+    assert int(grid.blocks_missing(1)) == 0
     assert model.field.feature_grid.capacity(1) == grid.capacity(1)
     assert torch.equal(model.field.feature_grid.block_map(1), grid.block_map(1))
 

@@ -721,9 +721,11 @@ class FastModel(Model):
         self.active_levels.fill_(self.field.active_levels)
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
+            if step % SPARSE_CHECK_EVERY == 0:
+                self._reserve_sparse()
             self.grid.update(self.field.density, self.step_size, generator=self.generator, rotation=step // occ.update_every)
             self.march_box.copy_(self.grid.occupied_aabb())
-            self._grow_sparse(check=step % SPARSE_CHECK_EVERY == 0)
+            self._grow_sparse()
         if self.cfg.tighten_step and step == self.cfg.tighten_step:
             self.tighten()
 
@@ -786,19 +788,24 @@ class FastModel(Model):
             for grid in grids:
                 grid.sparsify(level, blocks, self.cfg.sparse_headroom)
 
-    def _grow_sparse(self, check: bool = False) -> None:
-        """Store the blocks that newly occupied cells reach, in the sparse levels' free slots; with ``check`` (a host
-        read), give a level that ran out of them room for what it missed and ``sparse_headroom`` more."""
+    def _grow_sparse(self) -> None:
+        """Store the blocks that newly occupied cells reach, in the sparse levels' free slots (on the device)."""
         grids = (self.field.density_grid, self.field.feature_grid)
         levels = [lv for lv in range(len(grids[0].resolutions)) if grids[0].sparse(lv)]
         for level, blocks in zip(levels, self._needed_blocks(levels)):
             for grid in grids:
                 grid.grow(level, blocks)
-            if check and int(grids[0].blocks_missing(level)):
+
+    def _reserve_sparse(self) -> None:
+        """Give a sparse level that ran out of free slots at the last refresh (one host read per level) room for what it
+        missed and ``sparse_headroom`` more; the next refresh stores those blocks. Decided from the last refresh's
+        counts, which processes trained together share (rank 0's), so every process's table grows alike."""
+        grids = (self.field.density_grid, self.field.feature_grid)
+        for level in range(len(grids[0].resolutions)):
+            if grids[0].sparse(level) and int(grids[0].blocks_missing(level)):
                 need = int(grids[0].slots_used(level)) + int(grids[0].blocks_missing(level))
                 for grid in grids:
                     grid.reserve(level, math.ceil(need * (1 + self.cfg.sparse_headroom)) - grid.capacity(level))
-                    grid.grow(level, blocks)
 
     @staticmethod
     def _resample(table, old_res, old_box, new_box, new_res) -> Tensor:
