@@ -128,7 +128,7 @@ def ball_model(sparse_min_vertices, headroom=0.25, thickness=0.03):
     tightened."""
     cfg = FastConfig(
         levels=(8, 64), feature_channels=2, hidden=16, log2_hashmap_size=0, sparse_min_vertices=sparse_min_vertices, sparse_headroom=headroom,
-        occupancy=OccupancyGridConfig(resolution=64, warmup_steps=0, update_every=1),
+        occupancy=OccupancyGridConfig(resolution=64, warmup_steps=0, update_every=1000),  # no refresh at step 1
     )
     torch.manual_seed(0)
     model = cfg.setup(tiny_info())
@@ -140,6 +140,8 @@ def ball_model(sparse_min_vertices, headroom=0.25, thickness=0.03):
             table.normal_()
     model.grid.update(model.field.density, model.step_size, full=True)
     model.tighten()
+    assert not any(model.field.density_grid.sparse(lv) for lv in range(2))  # at the next step's start
+    model._before_step(1)
     return model
 
 
@@ -259,3 +261,23 @@ def test_block_rows_stay_exact_when_float32_products_may_lose_precision(monkeypa
     exact, _ = block_rows(lo, block_map, small)
     monkeypatch.setattr(grid, "_exact_float32", lambda device: False)
     assert torch.equal(block_rows(lo, block_map, small)[0], exact)
+
+
+def test_a_checkpoint_taken_between_the_tightening_and_the_next_step_makes_its_levels_sparse_when_resumed():
+    cfg = FastConfig(
+        levels=(8, 64), feature_channels=2, hidden=16, log2_hashmap_size=0, sparse_min_vertices=1000,
+        occupancy=OccupancyGridConfig(resolution=64, warmup_steps=0, update_every=1000),
+    )
+    straight = ball_model(1000)
+    model = cfg.setup(tiny_info())
+    with torch.no_grad():
+        for table, res in zip(model.field.density_grid.tables, model.field.density_grid.resolutions):
+            ijk = torch.stack(torch.meshgrid(*(torch.linspace(-1, 1, n) for n in res), indexing="ij"), -1).reshape(-1, 3)
+            table[:, 0] = torch.where((ijk.norm(dim=-1) - 0.5).abs() < 0.03, 8.0, -8.0)
+    model.grid.update(model.field.density, model.step_size, full=True)
+    model.tighten()
+    resumed = cfg.setup(tiny_info())
+    resumed.load_state_dict(model.state_dict())
+    assert not resumed.field.density_grid.sparse(1)
+    resumed._before_step(1)
+    assert resumed.field.density_grid.sparse(1) and straight.field.density_grid.sparse(1)

@@ -392,6 +392,10 @@ class FastModel(Model):
         aabb = info.aabb.detach().float()
         self._step = 0
         self.register_buffer("trained_steps", torch.tensor(0))
+        self.register_buffer("sparse_pending", torch.tensor(False))
+        """Whether the levels are to be made sparse at the next step (:meth:`tighten` leaves it for then)."""
+        self._sparse_pending = False
+        """:attr:`sparse_pending` on the host (read once when a checkpoint is loaded)."""
         log2_rows = self.capacity["log2_hashmap_size"]
         spacing, finest = self.capacity["spacing"], max(self.capacity["levels"])
         self._spacing_scale = 1.0 if spacing is None else (finest - 1) / (spacing - 1)
@@ -715,6 +719,10 @@ class FastModel(Model):
 
     def _before_step(self, step: int) -> None:
         self._step = step
+        if self._sparse_pending:
+            self._sparsify()
+            self._sparse_pending = False
+            self.sparse_pending.fill_(False)
         self.trained_steps.fill_(step)
         every, n = self.cfg.coarse_to_fine_every, len(self.field.density_grid.resolutions)
         self.field.active_levels = min(n, 2 + step // every) if every > 0 else n
@@ -762,7 +770,8 @@ class FastModel(Model):
         self.grid.density.zero_()
         self.grid.update(self.field.density, self.step_size, full=True, generator=self.generator)
         self.march_box.copy_(self.grid.occupied_aabb())
-        self._sparsify()
+        self._sparse_pending = True  # at the next step's start, from this occupancy as processes trained together share it
+        self.sparse_pending.fill_(True)
 
     def _needed_blocks(self, levels: "list[int]") -> "list[Tensor]":
         """The blocks of some levels that reads in the occupied cells reach (:func:`~nerfpipe.fields.grid.needed_blocks`;
@@ -773,7 +782,9 @@ class FastModel(Model):
 
     def _sparsify(self) -> None:
         """Store the dense levels above :attr:`FastConfig.sparse_min_vertices` sparse (both grids alike: they share
-        their corners)."""
+        their corners). Run at the start of the step after the tightening, from the occupancy as it stands then: under
+        torchrun rank 0's, which every process received after the tightening's step, so every process's tables
+        take the same shapes."""
         if not self.cfg.sparse_min_vertices:
             return
         grids = (self.field.density_grid, self.field.feature_grid)
@@ -879,6 +890,7 @@ class FastModel(Model):
             if self.behind is not None:
                 self.behind = BackgroundField(self.cfg.behind, self.behind.aabb).to(device)
         steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
+        self._sparse_pending = bool(state_dict.setdefault(prefix + "sparse_pending", torch.tensor(False)))  # once per load
         # checkpoints from before density_levels: density from every level
         state_dict.setdefault(prefix + "density_levels", torch.tensor(len(self.field.density_grid.tables)))
         self._step = int(steps)
