@@ -174,7 +174,9 @@ class FastConfig:
     (0: every level dense)."""
     log2_dense_max: "int | None" = None
     """Levels of at most 2^this vertices are not hashed, even above ``log2_hashmap_size``'s rows: they start dense and are
-    stored sparse once the box is tightened (``sparse_min_vertices``). None: ``log2_hashmap_size``."""
+    stored sparse once the box is tightened (``sparse_min_vertices``). None: ``log2_hashmap_size``. blender_lego (``medium``,
+    side by side, 5 views) with its 128-level so (22): 29.14 against 29.05 dB after 1,000 steps, in 35.4 against 23.4 MB,
+    at 1.06x the time per step: not a default."""
     feature_channels: "int | None" = None
     """Override the preset's colour features per vertex and level."""
     hidden: "int | None" = None
