@@ -189,12 +189,13 @@ def test_sparse_levels_store_the_blocks_that_newly_occupied_cells_reach():
     assert torch.equal(model.field.feature_grid.block_map(1), grid.block_map(1))
 
 
-def test_a_table_given_more_blocks_keeps_its_optimizer_moments_and_average():
+def test_a_relaid_out_table_keeps_its_values_optimizer_moments_and_average_with_its_rows():
     from nerfpipe.training.averaging import ParameterAverage
     from nerfpipe.training.trainer import drop_stale_optimizer_state
 
     enc = DenseGridEncoding([RES], channels=2, init_scale=1.0)
-    enc.sparsify(0, random_blocks(RES, 7), headroom=0.0)
+    first = random_blocks(RES, 7)
+    enc.sparsify(0, first, headroom=0.0)
     opt = torch.optim.Adam(enc.parameters(), lr=0.1)
     average = ParameterAverage(enc, start=0, decay=0.5)
     x = points(100)
@@ -205,29 +206,47 @@ def test_a_table_given_more_blocks_keeps_its_optimizer_moments_and_average():
         average.update(step)
     table = enc.tables[0]
     rows = table.shape[0]
-    moments = {k: v.clone() for k, v in opt.state[table].items()}
-    averaged = average.values["tables.0"].clone()
-    enc.reserve(0, 3)
-    assert table.shape[0] == rows + 3 * BLOCK**3 and table.rows_appended == rows
-    assert bool((table[rows:] == 0).all())
+    nb = blocks_per_axis(RES)
+    ijk = torch.stack(torch.meshgrid(*(torch.arange(n) for n in RES), indexing="ij"), -1).reshape(-1, 3)
+
+    def vertex_rows(e):
+        r, stored = block_rows(ijk.float(), e.block_map(0), nb)
+        return r[:, 0], stored[:, 0]
+
+    before_rows, before_stored = vertex_rows(enc)
+    values = table.detach()[before_rows]
+    moments = {k: v[before_rows] for k, v in opt.state[table].items() if v.ndim}
+    averaged = average.values["tables.0"][before_rows]
+    second = first.clone()
+    second.view(-1)[torch.nonzero(first.view(-1))[0]] = False  # one block dropped
+    second.view(-1)[torch.nonzero(~first.view(-1))[:2, 0]] = True  # two added
+    enc.relayout(0, second, headroom=0.5)
+    assert enc.capacity(0) == -(-int(second.sum()) * 3 // 2) and int(enc.slots_used(0)) == int(second.sum())
+    after_rows, after_stored = vertex_rows(enc)
+    both = before_stored & after_stored
+    assert torch.equal(table.detach()[after_rows[both]], values[both])  # the kept blocks' values, moved
+    new = after_stored & ~before_stored
+    assert bool(new.any()) and bool((table.detach()[after_rows[new]] == 0).all())
     drop_stale_optimizer_state(opt)
-    for k in ("exp_avg", "exp_avg_sq"):
-        assert torch.equal(opt.state[table][k][:rows], moments[k]) and bool((opt.state[table][k][rows:] == 0).all())
-    assert torch.equal(opt.state[table]["step"], moments["step"])
+    for k, v in moments.items():
+        assert torch.equal(opt.state[table][k][after_rows[both]], v[both])
+        assert bool((opt.state[table][k][after_rows[new]] == 0).all())
     opt.zero_grad()
     enc(x).square().sum().backward()
-    opt.step()  # the free rows get no gradient and stay zero
-    assert bool((table[rows:] == 0).all())
+    opt.step()  # free rows get no gradient and stay zero
+    used = torch.zeros(table.shape[0], dtype=torch.bool)
+    used[after_rows[after_stored]] = True
+    assert bool((table.detach()[~used] == 0).all())
     average.update(4)
     assert average.count == 4  # not restarted
-    torch.testing.assert_close(average.values["tables.0"][:rows], torch.lerp(averaged, table.detach()[:rows], 0.5))
-    # a resampled table (not rows appended) still drops its state
+    torch.testing.assert_close(average.values["tables.0"][after_rows[both]], torch.lerp(averaged[both], table.detach()[after_rows[both]], 0.5))
+    # a resampled table (not re-laid out) still drops its state
     table.data = torch.zeros(rows - 64, 2)
     drop_stale_optimizer_state(opt)
     assert opt.state[table] == {}
 
 
-def test_a_sparse_level_out_of_free_blocks_grows_its_table_at_a_check():
+def test_a_sparse_level_out_of_free_blocks_is_laid_out_again_at_a_check():
     model = ball_model(1000, headroom=0.0)
     grid = model.field.density_grid
     capacity = grid.capacity(1)
@@ -235,12 +254,14 @@ def test_a_sparse_level_out_of_free_blocks_grows_its_table_at_a_check():
         model.grid.binary.view(64, 64, 64)[:, :, :3] = True
     model._grow_sparse()  # what does not fit is counted, read as zeros
     assert int(grid.blocks_missing(1)) > 0 and grid.capacity(1) == capacity
-    model._reserve_sparse()  # at the next check: room for them
-    assert grid.capacity(1) > capacity
-    model._grow_sparse()  # stored at the next refresh
-    assert int(grid.blocks_missing(1)) == 0
+    model._relayout_sparse()  # at the next check: every needed block stored
+    assert grid.capacity(1) > capacity and int(grid.blocks_missing(1)) == 0
     assert model.field.feature_grid.capacity(1) == grid.capacity(1)
     assert torch.equal(model.field.feature_grid.block_map(1), grid.block_map(1))
+    with torch.no_grad():  # the added slab empties again: its blocks are dropped at the next check
+        model.grid.binary.view(64, 64, 64)[:, :, :3] = False
+    model._relayout_sparse()
+    assert grid.capacity(1) == capacity
 
 
 def test_block_rows_stay_exact_when_float32_products_may_lose_precision(monkeypatch):

@@ -32,7 +32,7 @@ import math
 import torch
 from torch import nn
 
-from nerfpipe.functional.gather import weighted_gather
+from nerfpipe.functional.gather import move_rows, weighted_gather
 from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 # corner offsets (di, dj, dk) in the order of the eight trilinear weights
@@ -375,16 +375,27 @@ class DenseGridEncoding(nn.Module):
         self.blocks_missing(level).copy_((new & ~ok).sum())
 
     @torch.no_grad()
-    def reserve(self, level: int, blocks: int) -> None:
-        """Give a sparse level's table room for ``blocks`` more blocks (free slots of zeros appended after its rows).
-        The table's parameter is marked with ``rows_appended`` (its former row count), so that the optimizer's moments
-        and the parameter average of its rows are kept (:func:`~nerfpipe.training.trainer.drop_stale_optimizer_state`)."""
-        table = self.tables[level]
-        if blocks <= 0:
-            return
+    def relayout(self, level: int, blocks: Bool[Tensor, "bx by bz"], headroom: float = 0.1) -> None:
+        """Store exactly the ``blocks`` given of a sparse level (blocks no longer needed are dropped, new ones start at
+        zero), in a table with ``headroom`` times as many free slots. The table's parameter is marked ``row_source``
+        (its former row count and, per new row, the row it was, -1 for a new one), so that the optimizer's moments and
+        the parameter average move with the rows (:func:`~nerfpipe.training.trainer.drop_stale_optimizer_state`)."""
+        table, slots = self.tables[level], self.block_map(level)
+        flat = blocks.reshape(-1).to(slots.device)
+        count = int(flat.sum())
+        capacity = max(1, math.ceil(count * (1 + headroom)))
+        new_first = torch.full_like(slots, -1)
+        new_first[flat] = torch.arange(count, device=slots.device) * BLOCK**3
+        local = torch.arange(BLOCK**3, device=slots.device)
+        source = torch.full((capacity * BLOCK**3,), -1, dtype=torch.long, device=slots.device)
+        kept = flat & (slots >= 0)
+        source.view(-1, BLOCK**3)[new_first[kept] // BLOCK**3] = slots[kept, None] + local
         rows = table.shape[0]
-        table.data = torch.cat([table.data, table.new_zeros(blocks * BLOCK**3, table.shape[1])])
-        table.rows_appended = rows
+        table.data = move_rows(table.data, source)
+        table.row_source = (rows, source)
+        slots.copy_(new_first)
+        self.slots_used(level).fill_(count)
+        self.blocks_missing(level).zero_()
 
     def capacity(self, level: int) -> int:
         """Blocks a sparse level's table holds."""

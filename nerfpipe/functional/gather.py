@@ -66,3 +66,16 @@ def weighted_gather(
         [[2.0, 3.0]]
     """
     return _WeightedGather.apply(table, idx, w)
+
+
+def move_rows(old: Tensor, source: Int[Tensor, "num_new"], fill: "Tensor | None" = None) -> Tensor:
+    """A table re-laid out: new row ``i`` is ``old``'s row ``source[i]``, or ``fill``'s row ``i`` (default zeros) where
+    ``source[i]`` is -1.
+
+    Example:
+        >>> move_rows(torch.tensor([[1.0], [2.0]]), torch.tensor([1, -1, 0])).tolist()
+        [[2.0], [0.0], [1.0]]
+    """
+    taken = old.index_select(0, source.clamp(min=0).to(old.device))
+    new = (source < 0).to(old.device).view(-1, *([1] * (old.ndim - 1)))
+    return torch.where(new, torch.zeros_like(taken) if fill is None else fill, taken)

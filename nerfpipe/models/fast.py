@@ -126,7 +126,8 @@ tightening. blender_lego's 64-level takes 0.58 there, and by step 300 its blocks
 against 23.0 MB in all) for 7 % more time per step: it stays dense. lego_200's levels take 0.45 and 0.31."""
 
 SPARSE_CHECK_EVERY = 256
-"""Steps between the checks (one host read each) whether a sparse level ran out of free blocks (then its table grows)."""
+"""Steps between the checks (one host read per level) whether a sparse level ran out of free blocks or holds many no
+longer needed (then it is laid out again: :meth:`FastModel._relayout_sparse`)."""
 
 BEHIND_SEEN = 1e-3
 """Transmittance of the box below which a ray's colour behind the box is not computed (it changes the
@@ -243,8 +244,8 @@ class FastConfig:
     """When the box is tightened, dense levels of more vertices than this are stored sparse from then on
     (:meth:`~nerfpipe.fields.grid.DenseGridEncoding.sparsify`): only the blocks of 4 x 4 x 4 vertices that a read in the
     occupied cells (dilated by ``sparse_dilation`` cells) reaches, plus ``sparse_headroom`` free blocks that cells
-    occupied later take (on the device, at each occupancy refresh; a level out of them gets more rows at a check every
-    :data:`SPARSE_CHECK_EVERY` steps). Values and gradients where the field is read are the dense level's (0: every level
+    occupied later take (on the device, at each occupancy refresh; a level out of them, or holding many blocks no
+    longer needed, is laid out again at a check every :data:`SPARSE_CHECK_EVERY` steps). Values and gradients where the field is read are the dense level's (0: every level
     stays dense). lego_200 (``small``) side by side at equal steps: 28.51 / 30.20 dB after 300 / 600 steps in 8.46 MB
     against 28.49 / 30.20 dB in 25.5 MB dense, at 0.106 against 0.097 s per step (README)."""
     sparse_dilation: int = 0
@@ -732,7 +733,7 @@ class FastModel(Model):
         occ = self.cfg.occupancy
         if step >= occ.warmup_steps and step % occ.update_every == 0:
             if step % SPARSE_CHECK_EVERY == 0:
-                self._reserve_sparse()
+                self._relayout_sparse()
             self.grid.update(self.field.density, self.step_size, generator=self.generator, rotation=step // occ.update_every)
             self.march_box.copy_(self.grid.occupied_aabb())
             self._grow_sparse()
@@ -809,16 +810,19 @@ class FastModel(Model):
             for grid in grids:
                 grid.grow(level, blocks)
 
-    def _reserve_sparse(self) -> None:
-        """Give a sparse level that ran out of free slots at the last refresh (one host read per level) room for what it
-        missed and ``sparse_headroom`` more; the next refresh stores those blocks. Decided from the last refresh's
-        counts, which processes trained together share (rank 0's), so every process's table grows alike."""
+    def _relayout_sparse(self) -> None:
+        """Lay a sparse level out again (one host read per level) where it ran out of free slots at the last refresh,
+        or where more of its blocks than ``sparse_headroom`` of them are no longer needed: it then stores exactly the
+        blocks the occupancy needs now, and ``sparse_headroom`` more free ones. Decided from the occupancy and counts of
+        the last refresh, which processes trained together share (rank 0's), so every process's tables change alike."""
         grids = (self.field.density_grid, self.field.feature_grid)
-        for level in range(len(grids[0].resolutions)):
-            if grids[0].sparse(level) and int(grids[0].blocks_missing(level)):
-                need = int(grids[0].slots_used(level)) + int(grids[0].blocks_missing(level))
+        levels = [lv for lv in range(len(grids[0].resolutions)) if grids[0].sparse(lv)]
+        for level, blocks in zip(levels, self._needed_blocks(levels)):
+            used, missing = int(grids[0].slots_used(level)), int(grids[0].blocks_missing(level))
+            needed = int(blocks.sum())
+            if missing or used + missing - needed > self.cfg.sparse_headroom * needed:
                 for grid in grids:
-                    grid.reserve(level, math.ceil(need * (1 + self.cfg.sparse_headroom)) - grid.capacity(level))
+                    grid.relayout(level, blocks, self.cfg.sparse_headroom)
 
     @staticmethod
     def _resample(table, old_res, old_box, new_box, new_res) -> Tensor:

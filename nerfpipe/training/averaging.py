@@ -15,13 +15,18 @@ train further goes on from them (the occupancy grid it refreshed from the averag
 import torch
 from torch import nn
 
+from nerfpipe.functional.gather import move_rows
 from nerfpipe.util.typing import Tensor
 
 
-def appended_rows(p: Tensor, old: Tensor) -> bool:
-    """Whether ``p`` has ``old``'s shape with rows appended, as its ``rows_appended`` mark (the former row count, set by
-    :meth:`~nerfpipe.fields.grid.DenseGridEncoding.reserve`) says: what was kept for ``old``'s rows stays valid."""
-    return getattr(p, "rows_appended", None) == old.shape[0] and p.shape[1:] == old.shape[1:] and p.shape[0] > old.shape[0]
+def moved_rows(p: Tensor, old: Tensor) -> "Tensor | None":
+    """Where ``p``'s rows were before it was re-laid out, as its ``row_source`` mark says (``(former row count, index)``,
+    set by :meth:`~nerfpipe.fields.grid.DenseGridEncoding.relayout`: new row ``i`` was row ``index[i]``, -1 for a new
+    row), when ``old`` has that former shape; else None (nothing kept for ``old``'s rows is valid any more)."""
+    mark = getattr(p, "row_source", None)
+    if mark is None or mark[0] != old.shape[0] or len(mark[1]) != p.shape[0] or p.shape[1:] != old.shape[1:]:
+        return None
+    return mark[1]
 
 
 class ParameterAverage:
@@ -29,7 +34,7 @@ class ParameterAverage:
 
     Args:
         model: whose parameters are averaged (by name; a parameter whose shape changes, a grid resampled to a
-            tightened box, restarts the average, but one only given more rows keeps it for its rows).
+            tightened box, restarts the average, but one whose rows were re-laid out keeps theirs).
         start: the first step (the trainer's count after the step) that enters the average.
         decay: weight of the average so far in each update once past the warm start (``1 - decay`` is the new
             step's weight, never less than ``1 / count``: the first ``1 / (1 - decay)`` steps count alike).
@@ -48,11 +53,12 @@ class ParameterAverage:
         """Add the parameters after training step ``step`` (nothing before :attr:`start`)."""
         if step < self.start:
             return
-        if self.values is not None:  # a sparse grid level given room for more blocks: its rows' average is kept
+        if self.values is not None:  # a sparse grid level re-laid out: its rows' average moves with them
             for k, v in self.values.items():
                 p = self.params[k]
-                if v.shape != p.shape and appended_rows(p, v):
-                    self.values[k] = torch.cat([v, p.detach()[v.shape[0] :]])
+                source = moved_rows(p, v) if v.shape != p.shape else None
+                if source is not None:
+                    self.values[k] = move_rows(v, source, p.detach())
         if self.values is None or any(v.shape != self.params[k].shape for k, v in self.values.items()):
             self.values, self.count = {k: p.detach().clone() for k, p in self.params.items()}, 1
             return

@@ -36,7 +36,8 @@ from nerfpipe.data.scene import SceneData, check_images
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.training import distributed
-from nerfpipe.training.averaging import ParameterAverage, appended_rows
+from nerfpipe.functional.gather import move_rows
+from nerfpipe.training.averaging import ParameterAverage, moved_rows
 from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.training.cuda_graph import GraphedStep
 from nerfpipe.training.pixel_sampler import PixelBatch, PixelSampler
@@ -240,16 +241,16 @@ def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
 def drop_stale_optimizer_state(optimizer: torch.optim.Optimizer) -> None:
     """Forget the optimiser state of parameters a model resized in a callback (e.g. grids
     resampled to a tightened box): Adam's moments no longer match their shape. A parameter whose rows were only
-    appended to (marked ``rows_appended``, its former row count: a sparse grid level given room for more blocks)
-    keeps its rows' state, the new rows' zero (:func:`appended_rows`)."""
+    re-laid out (marked ``row_source``: a sparse grid level whose blocks were added or dropped) keeps its rows' state,
+    moved with them; new rows' state is zero (:func:`~nerfpipe.training.averaging.moved_rows`)."""
     for p, st in list(optimizer.state.items()):
         stale = [k for k, v in st.items() if isinstance(v, torch.Tensor) and v.ndim > 0 and v.shape != p.shape]
-        if stale and all(appended_rows(p, st[k]) for k in stale):
-            for k in stale:
-                st[k] = torch.cat([st[k], st[k].new_zeros(p.shape[0] - st[k].shape[0], *p.shape[1:])])
+        sources = [moved_rows(p, st[k]) for k in stale]
+        if stale and all(src is not None for src in sources):
+            for k, src in zip(stale, sources):
+                st[k] = move_rows(st[k], src)
         elif stale:
             optimizer.state[p] = {}
-
 
 
 def share(total: int, world: distributed.World) -> int:
