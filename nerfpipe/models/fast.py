@@ -246,8 +246,8 @@ class FastConfig:
     occupied cells (dilated by ``sparse_dilation`` cells) reaches, plus ``sparse_headroom`` free blocks that cells
     occupied later take (on the device, at each occupancy refresh; a level out of them, or holding many blocks no
     longer needed, is laid out again at a check every :data:`SPARSE_CHECK_EVERY` steps). Values and gradients where the field is read are the dense level's (0: every level
-    stays dense). lego_200 (``small``) side by side at equal steps: 28.51 / 30.20 dB after 300 / 600 steps in 8.46 MB
-    against 28.49 / 30.20 dB in 25.5 MB dense, at 0.106 against 0.097 s per step (README)."""
+    stays dense). lego_200 (``small``) at equal steps: 28.50 / 30.19 / 32.61 dB after 300 / 600 / 3,000 steps in 8.46 /
+    8.68 / 6.93 MB against 28.49 / 30.20 / 32.63 dB in 25.5 MB dense, at 0.101 against 0.095 s per step (README)."""
     sparse_dilation: int = 0
     """Occupancy cells around the occupied ones whose blocks a sparse level stores too (lego_200 with 1 and 25 % free
     blocks: the same PSNR in 10.8 MB)."""
