@@ -239,6 +239,15 @@ def axis_resolution(extent: Float[Tensor, "3"], finest: int) -> "tuple[int, int,
     return tuple(max(2, int(round(float(s) * finest))) for s in scale)
 
 
+def _first_rows(flat: Bool[Tensor, "num_blocks"], headroom: float) -> "tuple[Int[Tensor, 'num_blocks'], int, int]":
+    """A sparse level's block map storing the blocks ``flat`` marks, in row order (-1 for the others), how many they
+    are, and the blocks a table with ``headroom`` free ones holds."""
+    count = int(flat.sum())
+    first = torch.full(flat.shape, -1, dtype=torch.long, device=flat.device)
+    first[flat] = torch.arange(count, device=flat.device) * BLOCK**3
+    return first, count, max(1, math.ceil(count * (1 + headroom)))
+
+
 class DenseGridEncoding(nn.Module):
     """Several dense grids of increasing resolution over the unit cube, features concatenated.
 
@@ -346,18 +355,14 @@ class DenseGridEncoding(nn.Module):
         if tuple(blocks.shape) != nb:
             raise ValueError(f"blocks of level {level} are {nb}, got {tuple(blocks.shape)}")
         table = self.tables[level]
-        flat = blocks.reshape(-1).to(table.device)
-        count = int(flat.sum())
-        slots = torch.full((flat.numel(),), -1, dtype=torch.long, device=table.device)
-        slots[flat] = torch.arange(count, device=table.device) * BLOCK**3  # each block's first row
-        new = table.new_zeros(max(1, math.ceil(count * (1 + headroom))) * BLOCK**3, table.shape[1])
+        slots, count, capacity = _first_rows(blocks.reshape(-1).to(table.device), headroom)
+        new = table.new_zeros(capacity * BLOCK**3, table.shape[1])
         ijk = torch.stack(torch.meshgrid(*(torch.arange(n, device=table.device) for n in res), indexing="ij"), -1).reshape(-1, 3)
         blk, loc = ijk // BLOCK, ijk % BLOCK
         first = slots[(blk[:, 0] * nb[1] + blk[:, 1]) * nb[2] + blk[:, 2]]
         keep = first >= 0
         rows = first + (loc[:, 0] * BLOCK + loc[:, 1]) * BLOCK + loc[:, 2]
-        dense_rows = (ijk[:, 0] * res[1] + ijk[:, 1]) * res[2] + ijk[:, 2]
-        new[rows[keep]] = table.data[dense_rows[keep]]
+        new[rows[keep]] = table.data[keep]  # the dense rows are in vertex order
         table.data = new
         setattr(self, f"block_map_{level}", slots)
         self.slots_used(level).fill_(count)
@@ -382,10 +387,7 @@ class DenseGridEncoding(nn.Module):
         the parameter average move with the rows (:func:`~nerfpipe.training.trainer.drop_stale_optimizer_state`)."""
         table, slots = self.tables[level], self.block_map(level)
         flat = blocks.reshape(-1).to(slots.device)
-        count = int(flat.sum())
-        capacity = max(1, math.ceil(count * (1 + headroom)))
-        new_first = torch.full_like(slots, -1)
-        new_first[flat] = torch.arange(count, device=slots.device) * BLOCK**3
+        new_first, count, capacity = _first_rows(flat, headroom)
         local = torch.arange(BLOCK**3, device=slots.device)
         source = torch.full((capacity * BLOCK**3,), -1, dtype=torch.long, device=slots.device)
         kept = flat & (slots >= 0)

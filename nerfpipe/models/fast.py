@@ -245,15 +245,15 @@ class FastConfig:
     (:meth:`~nerfpipe.fields.grid.DenseGridEncoding.sparsify`): only the blocks of 4 x 4 x 4 vertices that a read in the
     occupied cells (dilated by ``sparse_dilation`` cells) reaches, plus ``sparse_headroom`` free blocks that cells
     occupied later take (on the device, at each occupancy refresh; a level out of them, or holding many blocks no
-    longer needed, is laid out again at a check every :data:`SPARSE_CHECK_EVERY` steps). Values and gradients where the field is read are the dense level's (0: every level
-    stays dense). lego_200 (``small``) at equal steps: 28.50 / 30.19 / 32.61 dB after 300 / 600 / 3,000 steps in 8.46 /
+    longer needed, is laid out again at a check every :data:`SPARSE_CHECK_EVERY` steps). Values and gradients where
+    the field is read are the dense level's (0: every level stays dense). lego_200 (``small``) at equal steps: 28.50 / 30.19 / 32.61 dB after 300 / 600 / 3,000 steps in 8.46 /
     8.68 / 6.93 MB against 28.49 / 30.20 / 32.63 dB in 25.5 MB dense, at 0.101 against 0.095 s per step (README)."""
     sparse_dilation: int = 0
     """Occupancy cells around the occupied ones whose blocks a sparse level stores too (lego_200 with 1 and 25 % free
     blocks: the same PSNR in 10.8 MB)."""
     sparse_headroom: float = 0.1
     """Free blocks of a sparse level, as a fraction of the blocks stored when it was made sparse (and of those needed
-    when its table grows)."""
+    when it is laid out again)."""
     box_margin: float = 0.05
     """Fraction of the box size added around the occupied cells when tightening."""
     box_min_share: float = 0.01
@@ -756,7 +756,7 @@ class FastModel(Model):
     @torch.no_grad()
     def tighten(self) -> None:
         """Shrink the field's box to the occupied cells (plus a margin) and resample its grids."""
-        if any(self.field.density_grid.sparse(lv) for lv in range(len(self.field.density_grid.resolutions))):
+        if self._sparse_levels():
             raise RuntimeError("the box is tightened once, before its levels are stored sparse")
         box = self.grid.supported_aabb(self.cfg.box_min_share)
         margin = self.cfg.box_margin * (box[1] - box[0])
@@ -802,12 +802,15 @@ class FastModel(Model):
             for grid in grids:
                 grid.sparsify(level, blocks, self.cfg.sparse_headroom)
 
+    def _sparse_levels(self) -> "list[int]":
+        """The levels stored sparse (the density and feature grids alike)."""
+        return [lv for lv in range(len(self.field.density_grid.resolutions)) if self.field.density_grid.sparse(lv)]
+
     def _grow_sparse(self) -> None:
         """Store the blocks that newly occupied cells reach, in the sparse levels' free slots (on the device)."""
-        grids = (self.field.density_grid, self.field.feature_grid)
-        levels = [lv for lv in range(len(grids[0].resolutions)) if grids[0].sparse(lv)]
+        levels = self._sparse_levels()
         for level, blocks in zip(levels, self._needed_blocks(levels)):
-            for grid in grids:
+            for grid in (self.field.density_grid, self.field.feature_grid):
                 grid.grow(level, blocks)
 
     def _relayout_sparse(self) -> None:
@@ -816,7 +819,7 @@ class FastModel(Model):
         blocks the occupancy needs now, and ``sparse_headroom`` more free ones. Decided from the occupancy and counts of
         the last refresh, which processes trained together share (rank 0's), so every process's tables change alike."""
         grids = (self.field.density_grid, self.field.feature_grid)
-        levels = [lv for lv in range(len(grids[0].resolutions)) if grids[0].sparse(lv)]
+        levels = self._sparse_levels()
         for level, blocks in zip(levels, self._needed_blocks(levels)):
             used, missing = int(grids[0].slots_used(level)), int(grids[0].blocks_missing(level))
             needed = int(blocks.sum())
@@ -871,8 +874,7 @@ class FastModel(Model):
 
     def _sparse_stats(self) -> "dict[str, float]":
         """Sparse levels, the share of their blocks stored and the blocks needed but not stored (no free slot left)."""
-        grid = self.field.density_grid
-        levels = [lv for lv in range(len(grid.resolutions)) if grid.sparse(lv)]
+        grid, levels = self.field.density_grid, self._sparse_levels()
         if not levels:
             return {}
         blocks = sum(grid.block_map(lv).numel() for lv in levels)
