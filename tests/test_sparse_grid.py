@@ -9,7 +9,9 @@ import torch
 
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
-from nerfpipe.fields.grid import BLOCK, DenseGridEncoding, block_row_reference, block_rows, blocks_per_axis, grid_gather, needed_blocks
+from nerfpipe.fields.grid import (
+    BLOCK, DenseGridEncoding, block_row_reference, block_rows, blocks_per_axis, grid_gather, needed_blocks, trilinear_corners,
+)
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import FastConfig
 
@@ -90,6 +92,24 @@ def test_a_sparse_level_reads_and_trains_as_the_dense_level_where_stored(device)
     used = torch.zeros(sp.tables[1].shape[0], dtype=torch.bool, device=device)
     used[rows[kept]] = True
     assert bool((sp.tables[1].grad[~used] == 0).all())  # free slots and padding rows stay untouched
+
+
+def test_sparse_levels_read_together_as_each_alone_and_follow_their_growth(device):
+    """Sparse levels with a dense one between them read together as each level alone; a map grown in place is read
+    anew."""
+    res2 = (9, 14, 5)
+    enc = DenseGridEncoding([RES, (3, 3, 3), res2], channels=2, init_scale=1.0).to(device)
+    enc.sparsify(0, random_blocks(RES, 5).to(device), headroom=1.0)
+    enc.sparsify(2, random_blocks(res2, 6, share=0.3).to(device), headroom=4.0)  # room for every block
+    x = points(300, seed=7).to(device)
+    together = enc.corners_of(3, x)
+    for level, (rows, w) in enumerate(together):
+        alone = enc.corners(level, x)
+        assert torch.equal(rows, alone[0]) and torch.equal(w, alone[1]), level
+    assert bool((together[2][1] == 0).any()) and bool((together[2][1] != 0).any())
+    enc.grow(2, torch.ones(blocks_per_axis(res2), dtype=torch.bool, device=device))
+    assert int(enc.blocks_missing(2)) == 0
+    assert torch.equal(enc.corners_of(3, x)[2][1], trilinear_corners(x, res2)[1])  # every corner stored: plain weights
 
 
 def test_grow_takes_free_slots_on_the_device_and_counts_what_does_not_fit():
