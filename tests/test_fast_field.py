@@ -431,3 +431,20 @@ def test_both_trilinear_weight_routes_agree_bit_for_bit(device):
     a, b = trilinear_weights(frac, per_axis=True), trilinear_weights(frac, per_axis=False)
     assert torch.equal(a, b)
     torch.testing.assert_close(a.sum(-1), torch.ones(3, 200, device=device))
+
+
+def test_learning_rates_fall_tenfold_over_the_steps_the_scene_type_asks_for():
+    """Bounded scenes decay over LR_DECAY_STEPS, real captures over LR_DECAY_STEPS_REAL, an explicit value wins; the
+    factor is exponential and floored."""
+    from nerfpipe.models.fast import LR_DECAY_STEPS, LR_DECAY_STEPS_REAL
+
+    cfg = FastConfig(preset="small")
+    bounded = cfg.setup(info())
+    real = cfg.setup(info(unbounded=True))
+    assert (bounded.lr_decay_steps, real.lr_decay_steps) == (LR_DECAY_STEPS, LR_DECAY_STEPS_REAL)
+    assert LR_DECAY_STEPS > LR_DECAY_STEPS_REAL
+    assert bounded.lr_factor(0) == 1.0 and bounded.lr_factor(LR_DECAY_STEPS) == pytest.approx(0.1)
+    assert real.lr_factor(LR_DECAY_STEPS_REAL // 2) == pytest.approx(0.1**0.5)
+    assert bounded.lr_factor(100 * LR_DECAY_STEPS) == cfg.lr_min_factor
+    assert replace(cfg, lr_decay_steps=700).setup(info()).lr_factor(700) == pytest.approx(0.1)
+    assert replace(cfg, lr_decay_steps=0).setup(info(unbounded=True)).lr_factor(10**6) == 1.0
