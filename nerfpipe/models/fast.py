@@ -133,7 +133,7 @@ LR_DECAY_STEPS = 5000
 """Steps over which the learning rates fall tenfold, bounded scenes (``FastConfig.lr_decay_steps``). 2,000 until
 session 25; lego_200 (``small``, sparse levels; 10 views, side by side at equal steps) 28.48 / 31.14 / **33.03 dB**
 after 300 / 1,000 / 3,000 steps against 28.50 / 31.20 / 32.61, at 0.94x the seconds per step by 3,000 (fewer
-samples per ray: 5.9 against 7.3): later steps still learn detail where the faster decay had frozen the grids."""
+samples per ray: 5.9 against 7.1): later steps still learn detail where the faster decay had frozen the grids."""
 
 LR_DECAY_STEPS_REAL = 2000
 """The same for real captures (an SfM scene without alpha): their held-out views stop improving after a few hundred
