@@ -33,10 +33,10 @@ from nerfpipe.data.background import backgrounds
 from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.orbit import camera_arc
 from nerfpipe.data.scene import SceneData, check_images
+from nerfpipe.functional.gather import move_rows
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.models.base import Callback, Model, SceneInfo
 from nerfpipe.training import distributed
-from nerfpipe.functional.gather import move_rows
 from nerfpipe.training.averaging import ParameterAverage, moved_rows
 from nerfpipe.training.checkpoint import CHECKPOINT, find_checkpoint, load_checkpoint, save_checkpoint
 from nerfpipe.training.cuda_graph import GraphedStep
