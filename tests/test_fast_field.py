@@ -14,7 +14,7 @@ from nerfpipe.estimators.occupancy import OccupancyGridConfig
 from nerfpipe.functional.gather import corner_sum, row_dot
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
-from nerfpipe.models.fast import MAX_FINEST, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
+from nerfpipe.models.fast import MAX_FINEST, MAX_FINEST_BOUNDED, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
 from nerfpipe.training.trainer import Trainer, TrainerConfig
 from reference import trilinear_loop
 
@@ -167,8 +167,12 @@ def test_compact_capacity_resolves_a_pixel_and_bounds_memory():
     rows = sum(t.shape[0] for t in model.field.density_grid.tables)
     assert rows <= 32**3 + 3 * 2**17 and model.stats()["model_mb"] < 9  # dense, it would be 200^3 vertices
     assert model.stats()["finest_voxel"] == pytest.approx(2.0 / 199)
-    big = compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
-    assert big["levels"] == (32, 64, 128, 256)[: len(big["levels"])] and big["levels"][-1] == MAX_FINEST and big["log2_hashmap_size"] == 19
+    big = compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000, unbounded=True))
+    assert big["levels"] == (32, 64, 128, 256) and big["levels"][-1] == MAX_FINEST and big["log2_hashmap_size"] == 19
+    assert "spacing" not in big  # a real capture: the held-out views gain nothing finer
+    bounded = compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
+    assert bounded["levels"] == (32, 64, 128, 256, MAX_FINEST_BOUNDED) and bounded["spacing"] == MAX_FINEST
+    assert "spacing" not in compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 300))
     unknown = compact_capacity(info(num_images=10, pixels_per_image=300 * 300))  # no cameras: the image's side
     assert unknown["levels"][-1] == min(300, MAX_FINEST) and unknown["log2_hashmap_size"] == 17
 
@@ -219,6 +223,23 @@ def test_a_presets_spacing_level_sets_the_sample_spacing():
         m.field.active_levels = 4
     assert model.step_size == pytest.approx(old.step_size, rel=1e-6)
     assert model.stats()["model_mb"] < old.stats()["model_mb"] / 3
+
+
+def test_a_bounded_scenes_finer_level_keeps_the_sample_spacing():
+    """A bounded scene whose pixels ask for more than :data:`MAX_FINEST` gets a hashed level of
+    :data:`MAX_FINEST_BOUNDED` whose samples, with every level on, lie as far apart as the 256-level's would, and twice
+    the model's memory at most; ``spacing`` overrides the level the spacing is counted in."""
+    scene = info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 800)
+    model, plain = FastConfig(preset="compact").setup(scene), FastConfig(preset="compact", levels=(32, 64, 128, 256)).setup(scene)
+    assert model.capacity["levels"][-1] == MAX_FINEST_BOUNDED and model.capacity["spacing"] == MAX_FINEST
+    assert model.field.density_grid.hash_rows[-1] == 2**19
+    model.field.active_levels, plain.field.active_levels = 5, 4
+    assert model.step_size == pytest.approx(plain.step_size, rel=1e-6)
+    assert model.stats()["finest_voxel"] == pytest.approx(2.0 / (MAX_FINEST_BOUNDED - 1))
+    assert model.stats()["model_mb"] < 2 * plain.stats()["model_mb"]
+    own = FastConfig(preset="compact", levels=(32, 64, 128, 256), spacing=128).setup(scene)
+    own.field.active_levels = 4
+    assert own.capacity["spacing"] == 128 and own.step_size == pytest.approx(plain.step_size * 255 / 127, rel=1e-6)
 
 
 def test_a_checkpoint_of_the_former_dense_medium_still_loads():

@@ -99,6 +99,22 @@ so a finer level multiplies the samples per ray. colmap_mouse's 1920x1440 photog
 its ``nerfpipe run --time-budget 300`` trained 252 steps (val PSNR 22.42 dB), at 256 791 steps (24.28 dB)."""
 
 
+MAX_FINEST_BOUNDED = 512
+"""The finest level of a bounded scene's ``compact`` field at most, where its pixels ask for more than :data:`MAX_FINEST`
+(:data:`FINER_FROM` times it or more): a fifth level above the 256-level, hashed, with the samples kept as far apart as that
+level's (``spacing``: counted in 256-level voxels), so it adds detail, not samples per ray. The 800² stand-in
+(``python -m benchmarks.lego800``, 88 training views, 4 held out at full size, one ray per pixel; side by side at equal
+steps): levels to 256 / 512 **26.70 / 26.98 dB** after 1,000 steps and **28.55 / 29.17** after 3,000 (session 25), in
+22.9 / 33.4 MB, 512 at 1.26x the seconds per step by 3,000 (1.13x over the first 300, 24.57 against 24.59 dB there:
+session 26). Not finer: levels to 1,024 (2^19 rows each) gave 26.92 / 29.01 dB in 42.6 MB at 1.16x the time of 512's
+(with the early samples of both in the active levels' voxels, where 512 gave 26.93 / 29.04). Real captures keep
+:data:`MAX_FINEST`: their held-out views gain nothing from finer levels (colmap_mouse, session 15)."""
+
+FINER_FROM = 2.0
+"""A bounded scene's ``compact`` field gets a level above :data:`MAX_FINEST` where its pixels ask for this many times
+as many vertices (lego800's 800 do; 400² views of it, 400, do not: not measured there)."""
+
+
 def compact_capacity(info: SceneInfo) -> dict:
     """Capacity from the scene: the finest level resolves one training pixel at the box centre, the
     levels double from 32 vertices (at most :data:`MAX_LEVELS`, spaced evenly in log scale), and levels
@@ -117,7 +133,11 @@ def compact_capacity(info: SceneInfo) -> dict:
     levels = tuple(int(round(32 * growth**i)) for i in range(count))
     pixels = max(info.num_images * info.pixels_per_image, 1)
     log2_rows = int(min(19, max(17, round(math.log2(pixels / 32)))))
-    return dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
+    out = dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
+    if not info.unbounded and needed >= FINER_FROM * MAX_FINEST and len(levels) < MAX_LEVELS:
+        # a bounded scene whose pixels resolve more than the finest level: one more, hashed, at the spacing of the last
+        out.update(levels=levels + (int(min(needed, MAX_FINEST_BOUNDED)),), spacing=levels[-1])
+    return out
 
 
 SPARSE_MAX_SHARE = 0.5
@@ -195,6 +215,10 @@ class FastConfig:
     """Override the preset's colour features per vertex and level."""
     hidden: "int | None" = None
     """Override the preset's colour MLP width."""
+    spacing: "int | None" = None
+    """Override the level (vertices along the box) in whose voxel the sample spacing ``step_ratio`` is counted, where
+    finer than the finest level's: finer levels then add detail without adding samples. None: the preset's, or the
+    finest level's where ``levels`` is given."""
     density_levels: "int | None" = None
     """Density is the sum of the coarsest this many grid levels; colour reads every level. None:
     :data:`DENSITY_LEVELS_REAL` where a field behind the box models the surroundings (``background_field``, on by
@@ -394,6 +418,8 @@ class FastConfig:
                 out[key] = getattr(self, key)
         if self.levels is not None or not out.get("spacing"):  # levels of one's own: spacing in their finest voxel
             out["spacing"] = None
+        if self.spacing is not None:
+            out["spacing"] = self.spacing
         if not out["log2_hashmap_size"]:
             out["log2_hashmap_size"] = None
         return out
