@@ -14,7 +14,16 @@ from nerfpipe.estimators.occupancy import OccupancyGridConfig
 from nerfpipe.functional.gather import corner_sum, row_dot
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
-from nerfpipe.models.fast import MAX_FINEST, MAX_FINEST_BOUNDED, MAX_LEVELS, FastConfig, auto_preset, compact_capacity
+from nerfpipe.models.fast import (
+    LR_DECAY_STEPS,
+    LR_DECAY_STEPS_REAL,
+    MAX_FINEST,
+    MAX_FINEST_BOUNDED,
+    MAX_LEVELS,
+    FastConfig,
+    auto_preset,
+    compact_capacity,
+)
 from nerfpipe.training.trainer import Trainer, TrainerConfig
 from reference import trilinear_loop
 
@@ -457,8 +466,6 @@ def test_both_trilinear_weight_routes_agree_bit_for_bit(device):
 def test_learning_rates_fall_tenfold_over_the_steps_the_scene_type_asks_for():
     """Bounded scenes decay over LR_DECAY_STEPS, real captures over LR_DECAY_STEPS_REAL, an explicit value wins; the
     factor is exponential and floored."""
-    from nerfpipe.models.fast import LR_DECAY_STEPS, LR_DECAY_STEPS_REAL
-
     cfg = FastConfig(preset="small")
     bounded = cfg.setup(info())
     real = cfg.setup(info(unbounded=True))
