@@ -133,7 +133,7 @@ def test_training_leaves_what_the_final_evaluation_needs_within_bounds(tiny_scen
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0) and final_eval_need(t) is None  # no validation yet
     t.seconds_per_pixel = 1.0
     per_ray = final_eval_need(t)  # 2 views of 8x8 pixels, one ray each, over the final share, with the margin
-    assert per_ray == pytest.approx(1.3 * 2 * 64 / 0.8)
+    assert per_ray == pytest.approx(1.3 * 2 * 64 / 0.8) and final_eval_need(t, supersample=True) == pytest.approx(4 * per_ray)
     t.seconds_per_pixel = 30.0 / per_ray
     assert t.training_window() == pytest.approx(70.0)
     t.seconds_per_pixel = 40.0 / per_ray
@@ -142,6 +142,29 @@ def test_training_leaves_what_the_final_evaluation_needs_within_bounds(tiny_scen
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
     t.seconds_per_pixel = 1e-9
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
+
+
+def test_training_leaves_the_supersampled_final_evaluation_its_time_past_supersample_from(tiny_scene, tmp_path):
+    """From ``supersample_from`` on, the window leaves what the final evaluation needs with its rays per pixel
+    (2 x 2 here: 8-pixel renders of 16-pixel views), beyond FINAL_MAX_SHARE too; before it, and at 0, one ray's."""
+    from nerfpipe.training.evaluation import FINAL_SHARE, final_eval_need
+
+    t = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2, supersample_from=10), tiny_scene, "vanilla", MODEL, tmp_path)
+    t.seconds_per_pixel = 1.0
+    t.seconds_per_pixel = 15.0 / final_eval_need(t)  # one ray per pixel: 15 s, under the usual share; 2 x 2: 60 s
+    assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
+    t.step = 10
+    assert t.training_window() == pytest.approx(40.0)
+    t.supersample_from = 0
+    assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
+
+
+def test_supersample_from_defaults_to_the_plateau_where_parameters_are_averaged(tiny_scene, tmp_path):
+    from nerfpipe.training.trainer import PLATEAU_STEPS
+
+    assert Trainer(tcfg(average=True), tiny_scene, "vanilla", MODEL, tmp_path / "a").supersample_from == PLATEAU_STEPS
+    assert Trainer(tcfg(average=False), tiny_scene, "vanilla", MODEL, tmp_path / "b").supersample_from == 0
+    assert Trainer(tcfg(average=False, supersample_from=5), tiny_scene, "vanilla", MODEL, tmp_path / "c").supersample_from == 5
 
 
 @pytest.mark.parametrize("budget, supersample", [(3600.0, 2), (0.0, 1)])

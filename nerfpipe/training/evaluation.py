@@ -282,18 +282,23 @@ def _final_share(cfg) -> float:
     return EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE
 
 
-def final_eval_need(trainer) -> "float | None":
+def final_eval_need(trainer, supersample: bool = False) -> "float | None":
     """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
-    per pixel (from the latest validation's time per ray, :data:`FINAL_MARGIN` times over; None before one).
-    Supersampling is not reserved for: it is used where it fits in what is left (on colmap_mouse under
-    ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays cut training from 878 to 600 steps, and 2 x 2
-    still did not fit the 40 % kept)."""
+    per pixel, or with ``supersample`` as many as the final evaluation would use (``eval_supersample`` at most, where
+    views are scored smaller than their photographs), from the latest validation's time per ray, :data:`FINAL_MARGIN`
+    times over; None before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's
+    window): on colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut
+    training from 878 to 600 steps."""
     if trainer.seconds_per_pixel is None:
         return None
     cfg, scene = trainer.cfg, trainer.scene
     if trainer.final_eval_rays is None:  # fixed by the scene and the configuration: counted once
-        trainer.final_eval_rays = sum(w * h for w, h in _eval_sizes(scene, eval_views(scene, cfg.final_eval_views), cfg))
-    return FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays / _final_share(cfg)
+        idx = eval_views(scene, cfg.final_eval_views)
+        sizes = _eval_sizes(scene, idx, cfg)
+        cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
+        trainer.final_eval_rays = (sum(w * h for w, h in sizes),
+                                   sum(w * h * view_supersample(cams, i, (w, h), cfg.eval_supersample) ** 2 for i, (w, h) in enumerate(sizes)))
+    return FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
 
 
 def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
