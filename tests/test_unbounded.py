@@ -11,6 +11,7 @@ import torch
 from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
+from nerfpipe.fields.fast_field import direction_encoding
 from nerfpipe.functional.contraction import _contract_reference, contract, disparity_samples, to_box_coordinates
 from nerfpipe.models.base import RenderOutputs, SceneInfo
 from nerfpipe.models.fast import FastConfig
@@ -64,7 +65,6 @@ def _fit_wall(field, opt, target, steps: int = 150):
     """Train ``field`` towards a wall of colour ``target`` behind the box (plus its proposal loss, when it
     has one); returns its evaluation render of fresh rays and the proposal loss of every step."""
     from nerfpipe.estimators.occupancy import ray_aabb_intersect
-    from nerfpipe.fields.fast_field import direction_encoding
 
     def render(rays):
         t_exit = ray_aabb_intersect(rays.origins, rays.directions, field.aabb)[1]
@@ -405,7 +405,6 @@ def test_background_field_with_a_fine_field_learns_a_wall_behind_the_box():
 def test_the_colour_behind_the_box_is_computed_only_for_rays_that_show_it():
     """Rays the box hides (transmittance at most BEHIND_SEEN) keep the given background; the others get
     exactly what the field behind the box renders for them alone."""
-    from nerfpipe.fields.fast_field import direction_encoding
     from nerfpipe.models.fast import BEHIND_SEEN
 
     model = _model()
@@ -424,6 +423,28 @@ def test_the_colour_behind_the_box_is_computed_only_for_rays_that_show_it():
     torch.testing.assert_close(got[:2], bg[:2])
     torch.testing.assert_close(got[2:], full[2:])
     assert float((full[2:] - bg[2:]).abs().max()) > 0.01  # the field behind the box does show there
+
+
+def test_the_appearance_fit_composites_as_get_outputs_does():
+    """The fit's fast path (the box rendered once, the surroundings and the correction at every step) renders what
+    get_outputs renders under a fitted view's appearance."""
+    model = _model(num_images=3, behind_from=0)
+    torch.manual_seed(2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    model.eval()
+    rays = _rays(256, 7)
+    model._view_appearance = 0.2 * torch.randn(12 + model.image_codes.shape[1])
+    try:
+        with torch.no_grad():
+            want = model.get_outputs(rays, torch.full((256, 3), 0.5)).rgb
+            rgb, acc = model._in_box(rays)
+            got = model._over_surroundings(rays, rgb, acc, torch.full((256, 3), 0.5), direction_encoding(rays.directions), model._behind_start(rays), {})
+    finally:
+        model._view_appearance = None
+    assert float(acc.max()) > 0.05 and float(acc.min()) < 0.95
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
 
 
 def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own():
