@@ -439,8 +439,9 @@ def test_the_appearance_fit_composites_as_get_outputs_does():
     try:
         with torch.no_grad():
             want = model.get_outputs(rays, torch.full((256, 3), 0.5)).rgb
-            rgb, acc = model._in_box(rays)
-            got = model._over_surroundings(rays, rgb, acc, torch.full((256, 3), 0.5), direction_encoding(rays.directions), model._behind_start(rays), {})
+            code = direction_encoding(rays.directions)
+            *_, rgb, _, acc = model._in_box(rays, code)
+            got = model._over_surroundings(rays, rgb, acc, torch.full((256, 3), 0.5), code, model._behind_start(rays), {})
     finally:
         model._view_appearance = None
     assert float(acc.max()) > 0.05 and float(acc.min()) < 0.95

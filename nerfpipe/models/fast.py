@@ -576,15 +576,7 @@ class FastModel(Model):
         dir_code = direction_encoding(flat.directions)
         t_exit = self._behind_start(flat)
         extras = {}
-        samples, sigma = self._samples(flat)
-        pts = samples.points(flat.origins, flat.directions)
-        corners = self.field.corners(pts)
-        if torch.is_grad_enabled():  # the pruning pass ran without gradients: evaluate again with them
-            sigma = self.field.density_from_corners(corners)
-        rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
-        weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
-        t_mids = 0.5 * (samples.t_starts + samples.t_ends)
-        rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, torch.zeros_like(bg))
+        samples, weights, t_mids, rgb, depth, acc = self._in_box(flat, dir_code)
         rgb = self._over_surroundings(flat, rgb, acc, bg, dir_code, t_exit, extras)
         if self.training:
             n = len(samples) if samples.count is None else samples.count
@@ -692,9 +684,8 @@ class FastModel(Model):
             with torch.no_grad():  # what the appearance does not change, once: the box's colour and opacity
                 keep = torch.randperm(len(flat), generator=gen, device=flat.device)[:APPEARANCE_FIT_RAYS]
                 flat, target = flat[keep], target[keep]
-                box = [self._in_box(flat[j : j + (1 << 14)]) for j in range(0, len(flat), 1 << 14)]
-                box_rgb, box_acc = torch.cat([b[0] for b in box]), torch.cat([b[1] for b in box])
                 dir_code, t_exit = direction_encoding(flat.directions), self._behind_start(flat)
+                *_, box_rgb, _, box_acc = self._in_box(flat, dir_code)
             self._view_appearance = vec
             with torch.enable_grad():
                 for _ in range(steps):
@@ -713,15 +704,19 @@ class FastModel(Model):
             self._view_appearance = None
             self.train(was_training)
 
-    def _in_box(self, rays: RayBundle) -> "tuple[Float[Tensor, 'num_rays 3'], Float[Tensor, 'num_rays']]":
-        """The box's colour over black and its opacity along ``rays`` (evaluation: what :meth:`get_outputs` composites
-        over the surroundings)."""
+    def _in_box(self, rays: RayBundle, dir_code: Float[Tensor, "num_rays 16"]) -> tuple:
+        """What the box renders along ``rays`` (``dir_code``: their :func:`direction_encoding`): its samples, their
+        weights and midpoints, and the box's colour over black, depth and opacity, which :meth:`get_outputs` composites
+        over the surroundings (:meth:`_over_surroundings`)."""
         samples, sigma = self._samples(rays)
-        rgbs = self.field.rgb(samples.points(rays.origins, rays.directions), rays.directions[samples.ray_indices])
+        corners = self.field.corners(samples.points(rays.origins, rays.directions))
+        if torch.is_grad_enabled():  # the pruning pass ran without gradients: evaluate again with them
+            sigma = self.field.density_from_corners(corners)
+        rgbs = self.field.rgb_from_corners(corners, dir_code[samples.ray_indices])
         weights, _ = render_weights_packed(sigma, samples.t_ends - samples.t_starts, samples.ray_indices)
         t_mids = 0.5 * (samples.t_starts + samples.t_ends)
-        rgb, _, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, rays.origins.new_zeros(len(rays), 3))
-        return rgb, acc
+        rgb, depth, acc = composite_packed(weights, rgbs, t_mids, samples.ray_indices, rays.origins.new_zeros(len(rays), 3))
+        return samples, weights, t_mids, rgb, depth, acc
 
     def _refined(self, rays: RayBundle) -> RayBundle:
         """Training rays through their image's pose correction (zero-mean over the images): directions rotated

@@ -132,16 +132,16 @@ class TrainerConfig:
     24.31); off for synthetic scenes."""
     average_from: int = 256
     """First step of the parameter average."""
+    average_decay: float = 0.998
+    """Decay of the parameter average per step (the last ~``1 / (1 - decay)`` steps weigh most; uniform over the
+    first that many). colmap_mouse after 800 / 1,000 steps, from step 256: 0.99 24.48 / 24.44 dB, 0.995 24.54 /
+    24.49, 0.998 24.56 / 24.53 (the last step's parameters: 24.39 / 24.31)."""
     supersample_from: "int | None" = None
     """Under a wall-clock budget, from this step on training stops as soon as what is left is what the final
     evaluation needs with ``eval_supersample`` rays per pixel side (views scored smaller than their photographs:
     anti-aliased against their area mean), instead of training on at one ray per pixel. Default:
     :data:`PLATEAU_STEPS` where the parameters are averaged (real captures, whose held-out views stop improving
     after a few hundred steps), never elsewhere (0: never)."""
-    average_decay: float = 0.998
-    """Decay of the parameter average per step (the last ~``1 / (1 - decay)`` steps weigh most; uniform over the
-    first that many). colmap_mouse after 800 / 1,000 steps, from step 256: 0.99 24.48 / 24.44 dB, 0.995 24.54 /
-    24.49, 0.998 24.56 / 24.53 (the last step's parameters: 24.39 / 24.31)."""
     error_tiles: int = 16384
     """About how many tiles the error map cuts the training images into (square tiles, at least 4 pixels wide)."""
     track_rays: int = 512
@@ -218,8 +218,8 @@ class TrainerConfig:
             ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
             ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
             ("eval_supersample", 1 <= self.eval_supersample <= 8, "1 to 8"),
-            ("average_from", self.average_from >= 0, "0 or more"),
-            ("supersample_from", self.supersample_from is None or self.supersample_from >= 0, "0 or more"), ("average_decay", 0 <= self.average_decay < 1, "at least 0 and below 1"),
+            ("average_from", self.average_from >= 0, "0 or more"), ("average_decay", 0 <= self.average_decay < 1, "at least 0 and below 1"),
+            ("supersample_from", self.supersample_from is None or self.supersample_from >= 0, "0 or more"),
             ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
             ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
