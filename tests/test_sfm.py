@@ -158,3 +158,24 @@ def test_a_sideways_stored_portrait_photo_is_turned_upright_for_sfm(tmp_path):
         assert top[0] > 200 and bottom[0] < 50  # red on top, as the user sees it
         with Image.open(out / "p.jpg") as im:
             assert im.getexif().get(0x0112, 1) == 1  # no second turn by a viewer
+
+
+def test_rotation_agreement_sees_a_folded_part_of_a_capture_through_a_global_rotation():
+    """The pose benchmark's measure: a reconstruction equal to the reference up to a rotation of the world agrees
+    everywhere; one whose second half is turned 80 degrees agrees on its first half only, and a least-squares
+    alignment would have blurred that."""
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.sfm_poses import rotation_agreement
+
+    rng = np.random.default_rng(0)
+    ref = {f"{i:02d}.jpg": Rotation.random(random_state=rng).as_matrix() for i in range(12)}
+    world = Rotation.random(random_state=rng).as_matrix()
+    same = {n: r @ world.T for n, r in ref.items()}
+    assert rotation_agreement(same, ref) == {"shared": 12, "agree": 12, "median_error": pytest.approx(0.0, abs=1e-4)}
+    fold = Rotation.from_rotvec(np.radians(80.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    folded = {n: (r @ fold if i >= 7 else r) @ world.T for i, (n, r) in enumerate(sorted(ref.items()))}
+    noisy = {n: Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=3) / 3).as_matrix() @ r for n, r in folded.items()}
+    got = rotation_agreement(noisy, ref)
+    assert (got["shared"], got["agree"]) == (12, 7)
+    assert rotation_agreement({"x.jpg": np.eye(3)}, ref)["shared"] == 0

@@ -1,0 +1,107 @@
+"""How often the ``sfm`` stage recovers a capture's poses: run its reconstruction (features, matching, incremental
+mapping, as ``nerfpipe run PHOTOS`` does) several times and compare each result with a reference model of the same
+photographs (COLMAP's own, from more images), by rotation: the share of photos whose rotation agrees within
+``--tolerance`` degrees after the best alignment through any one photo (a reconstruction that folds part of the
+capture onto the wrong side keeps the rest exact, so a least-squares alignment would blur which photos are wrong).
+
+Run: ``python -m benchmarks.sfm_poses PHOTOS REFERENCE_MODEL --runs 5``; one JSON line per run.
+Session 28: 23 of colmap_mouse's photos (every 56/23-th by name) against COLMAP's model of all 56, one line per run.
+"""
+
+if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
+    from nerfpipe.util import runtime
+
+    runtime.apply()
+
+import json
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+
+@dataclass
+class SfmPosesConfig:
+    photos: tyro.conf.Positional[Path]
+    """A folder of photos (what ``nerfpipe run`` takes)."""
+    reference: tyro.conf.Positional[Path]
+    """A COLMAP model (``sparse/0``-style folder) of the same photos, by file name."""
+    runs: int = 3
+    """Reconstructions, each from scratch (COLMAP's RANSAC and mapping are randomised)."""
+    seed: "int | None" = None
+    """``IncrementalPipelineOptions.random_seed`` of the mapping (None: COLMAP's default, random)."""
+    tolerance: float = 5.0
+    """Degrees within which a rotation agrees."""
+
+
+def rotation_agreement(rotations: "dict[str, np.ndarray]", reference: "dict[str, np.ndarray]", tolerance: float = 5.0) -> "dict[str, float]":
+    """Agreement of camera rotations (``cam_from_world``, 3x3, by name) with a reference's, up to one rotation of the
+    world: for each shared name the alignment that makes that camera exact, keeping the one under which most cameras
+    agree within ``tolerance`` degrees. Returns the shared count, the agreeing count and the per-camera errors' median
+    under that alignment."""
+    names = sorted(set(rotations) & set(reference))
+    if not names:
+        return {"shared": 0, "agree": 0, "median_error": float("nan")}
+    ours = np.stack([rotations[n] for n in names])
+    ref = np.stack([reference[n] for n in names])
+    best = None
+    for k in range(len(names)):
+        world = ref[k].T @ ours[k]  # ref_world_from_our_world
+        rel = np.einsum("nij,kj,nlk->nil", ours, world, ref)  # ours @ world.T @ ref.T per camera
+        cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        err = np.degrees(np.arccos(cos))
+        if best is None or (err < tolerance).sum() > (best < tolerance).sum():
+            best = err
+    return {"shared": len(names), "agree": int((best < tolerance).sum()), "median_error": round(float(np.median(best)), 2)}
+
+
+def model_rotations(rec) -> "dict[str, np.ndarray]":
+    """``cam_from_world`` rotations of a pycolmap reconstruction's posed images, by file name."""
+    return {Path(img.name).name: np.asarray(img.cam_from_world().rotation.matrix()) for img in rec.images.values() if img.has_pose}
+
+
+def main(cfg: SfmPosesConfig) -> "list[dict]":
+    import pycolmap
+
+    from nerfpipe.plugins import sfm
+
+    reference = model_rotations(pycolmap.Reconstruction(str(cfg.reference)))
+    config = sfm.SfmConfig()
+    options = sfm._options
+    if cfg.seed is not None:
+        def seeded(pycolmap, config, time_left):
+            ext, match, mapping, reader = options(pycolmap, config, time_left)
+            mapping.random_seed = cfg.seed
+            return ext, match, mapping, reader
+
+        sfm._options = seeded
+    rows = []
+    photos = sfm._photos(cfg.photos)
+    try:
+        for run in range(cfg.runs):
+            with tempfile.TemporaryDirectory() as tmp:
+                work = Path(tmp)
+                start = time.monotonic()
+                info = sfm.prepare_images(photos, work / "images", config.max_image_size)
+                sfm.group_photos(work / "images", [p.name for p in photos], info, work / "grouped")
+                rec, _ = sfm.reconstruct(work / "grouped", work, config, info)
+                sfm.flatten_names(rec)
+                sfm.drop_failed_registrations(rec, config.max_centre_spread)
+                seconds = time.monotonic() - start
+                agreement = rotation_agreement(model_rotations(rec), reference, cfg.tolerance)
+                rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
+                                 reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
+                                 **agreement))
+                print(json.dumps(rows[-1]), flush=True)
+                shutil.rmtree(work / "grouped", ignore_errors=True)
+    finally:
+        sfm._options = options
+    return rows
+
+
+if __name__ == "__main__":
+    main(tyro.cli(SfmPosesConfig))
