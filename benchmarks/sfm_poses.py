@@ -20,7 +20,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import tyro
 
 
@@ -38,39 +37,14 @@ class SfmPosesConfig:
     """Degrees within which a rotation agrees."""
 
 
-def rotation_agreement(rotations: "dict[str, np.ndarray]", reference: "dict[str, np.ndarray]", tolerance: float = 5.0) -> "dict[str, float]":
-    """Agreement of camera rotations (``cam_from_world``, 3x3, by name) with a reference's, up to one rotation of the
-    world: for each shared name the alignment that makes that camera exact, keeping the one under which most cameras
-    agree within ``tolerance`` degrees. Returns the shared count, the agreeing count and the per-camera errors' median
-    under that alignment."""
-    names = sorted(set(rotations) & set(reference))
-    if not names:
-        return {"shared": 0, "agree": 0, "median_error": float("nan")}
-    ours = np.stack([rotations[n] for n in names])
-    ref = np.stack([reference[n] for n in names])
-    best = None
-    for k in range(len(names)):
-        world = ref[k].T @ ours[k]  # ref_world_from_our_world
-        rel = np.einsum("nij,kj,nlk->nil", ours, world, ref)  # ours @ world.T @ ref.T per camera
-        cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-        err = np.degrees(np.arccos(cos))
-        if best is None or (err < tolerance).sum() > (best < tolerance).sum():
-            best = err
-    return {"shared": len(names), "agree": int((best < tolerance).sum()), "median_error": round(float(np.median(best)), 2)}
-
-
-def model_rotations(rec) -> "dict[str, np.ndarray]":
-    """``cam_from_world`` rotations of a pycolmap reconstruction's posed images, by file name."""
-    return {Path(img.name).name: np.asarray(img.cam_from_world().rotation.matrix()) for img in rec.images.values() if img.has_pose}
-
-
 def main(cfg: SfmPosesConfig) -> "list[dict]":
     import pycolmap
 
     from nerfpipe.plugins import sfm
+    from nerfpipe.plugins.sfm import model_rotations, rotation_agreement
 
     reference = model_rotations(pycolmap.Reconstruction(str(cfg.reference)))
-    config = sfm.SfmConfig()
+    config = sfm.SfmConfig(candidate_sizes=())  # the first reconstruction, as it comes
     options = sfm._options
     if cfg.seed is not None:
         def seeded(pycolmap, config, time_left):

@@ -14,7 +14,7 @@ from nerfpipe.pipeline.stages import Pipeline
 PHOTOS = ["100_7100.JPG", "100_7101.JPG", "100_7102.JPG", "100_7103.JPG"]
 MAX_SIZE = 400
 """Longest side used in these tests (the photos are 2832x2128)."""
-FAST = {"max_image_size": MAX_SIZE, "max_num_features": 2048}
+FAST = {"max_image_size": MAX_SIZE, "max_num_features": 2048, "candidate_sizes": ()}
 
 
 def known_focal(root: Path, longest_side: int) -> float:
@@ -161,12 +161,12 @@ def test_a_sideways_stored_portrait_photo_is_turned_upright_for_sfm(tmp_path):
 
 
 def test_rotation_agreement_sees_a_folded_part_of_a_capture_through_a_global_rotation():
-    """The pose benchmark's measure: a reconstruction equal to the reference up to a rotation of the world agrees
+    """The measure by which the sfm stage compares reconstructions (and the pose benchmark scores them): a reconstruction equal to the reference up to a rotation of the world agrees
     everywhere; one whose second half is turned 80 degrees agrees on its first half only, and a least-squares
     alignment would have blurred that."""
     from scipy.spatial.transform import Rotation
 
-    from benchmarks.sfm_poses import rotation_agreement
+    from nerfpipe.plugins.sfm import rotation_agreement
 
     rng = np.random.default_rng(0)
     ref = {f"{i:02d}.jpg": Rotation.random(random_state=rng).as_matrix() for i in range(12)}
@@ -179,3 +179,43 @@ def test_rotation_agreement_sees_a_folded_part_of_a_capture_through_a_global_rot
     got = rotation_agreement(noisy, ref)
     assert (got["shared"], got["agree"]) == (12, 7)
     assert rotation_agreement({"x.jpg": np.eye(3)}, ref)["shared"] == 0
+
+
+def _mouse_subset(scene_path, root: Path, names: "list[str]", size: int = 240, fold: "list[str]" = ()) -> Path:
+    """A COLMAP folder of ``names`` of colmap_mouse's photos at ``size`` px (the model at full size, as a user's
+    half-size copies), the cameras of ``fold`` turned 80 degrees about their centres (a folded reconstruction)."""
+    import pycolmap
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    src = scene_path("colmap_mouse")
+    rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
+    turn = Rotation.from_rotvec(np.radians(80.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    for image_id, image in list(rec.images.items()):
+        if image.name not in names:
+            rec.deregister_frame(image.frame_id)
+        elif image.name in fold:
+            pose = image.cam_from_world()
+            rotation = turn @ np.asarray(pose.rotation.matrix())
+            rec.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), turn @ np.asarray(pose.translation))
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(root / "sparse" / "0"))
+    (root / "images").mkdir()
+    for name in names:
+        with Image.open(src / "images" / name) as im:
+            im.thumbnail((size, size))
+            im.save(root / "images" / name, quality=95)
+    return root
+
+
+def test_the_photometric_check_tells_a_folded_reconstruction_from_the_right_one(scene_path, tmp_path):
+    """The sfm stage's choice between disagreeing reconstructions: a short fit on each, scored on the same held-out
+    photographs. Half of the cameras turned 80 degrees (as incremental mapping folds part of a sparse capture) cannot
+    be rendered consistently from the others' views."""
+    from nerfpipe.plugins.sfm import photometric_check
+
+    names = sorted(p.name for p in (scene_path("colmap_mouse") / "images").iterdir())[::4][:12]
+    right = _mouse_subset(scene_path, tmp_path / "right", names)
+    folded = _mouse_subset(scene_path, tmp_path / "folded", names, fold=names[1::2])
+    good, bad = photometric_check([right, folded], steps=60, work=tmp_path / "work")
+    assert good > bad + 1.0

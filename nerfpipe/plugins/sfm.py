@@ -21,6 +21,7 @@ import json
 import shutil
 import time
 from dataclasses import dataclass
+from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 from typing import Literal
 
@@ -76,6 +77,18 @@ class SfmConfig:
     triangulate_max_photos: int = 100
     """Triangulate from at most this many of the posed photographs, spread evenly (a video's frames: every k-th);
     the others are trained on all the same (0: all). The fox's 67 took 14 s; a 300-frame capture would take a minute."""
+    candidate_sizes: "tuple[int, ...]" = (720, 640)
+    """Longest image sides of further reconstructions of the same photos, for captures of at most
+    ``candidate_max_photos``: on a few photos incremental mapping can fold part of a capture onto a wrong but
+    self-consistent place (23 of colmap_mouse's photos at 1,024 px: 11 of 22 registered photos 70-84 degrees off in 5
+    of 6 runs, while at 720 and 640 px 19 of 20 and 19 of 19 agreed with COLMAP's model of all 56). Where the
+    reconstructions disagree (:func:`rotation_agreement`), a short radiance-field fit on each picks the one whose
+    held-out photographs it renders best (:func:`photometric_check`). Empty: one reconstruction."""
+    candidate_max_photos: int = 40
+    """Photos above which no further reconstruction is made (larger captures constrain their poses better, and
+    each reconstruction costs more)."""
+    check_steps: int = 100
+    """Training steps of each reconstruction's fit in :func:`photometric_check`."""
     undistort: bool = True
     """Undistort the images into a PINHOLE model (otherwise keep the distorted model and photos)."""
     verbose: bool = False
@@ -299,24 +312,189 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     photos = _photos(photo_folder(ctx.source))
     work = ctx.path(WORK_DIR)
     shutil.rmtree(work, ignore_errors=True)
-    info = prepare_images(photos, work / "images", config.max_image_size)
-    group_photos(work / "images", [p.name for p in photos], info, work / "grouped")
     try:
-        rec, seconds = reconstruct(work / "grouped", work, config, info, ctx.time_left())
-    except NerfpipeError as exc:  # name the user's photos, not the scratch folder
-        raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
-    flatten_names(rec)
-    dropped = drop_failed_registrations(rec, config.max_centre_spread)
-    if dropped:
-        ctx.log.warning("sfm: dropped %d registrations as failed (bogus intrinsics or far off): %s", len(dropped), ", ".join(dropped))
+        rec, seconds, images = _candidate(photos, work, config, ctx.time_left())
+        dropped = drop_failed_registrations(rec, config.max_centre_spread)
+        if dropped:
+            ctx.log.warning("sfm: dropped %d registrations as failed (bogus intrinsics or far off): %s", len(dropped), ", ".join(dropped))
+        rec, images, chosen = choose_reconstruction(photos, work, config, (rec, images), ctx.time_left(), ctx.log)
+    except NerfpipeError as exc:  # name the user's photos, not the scratch folder (a photo at fault keeps its name)
+        if exc.path is not None and work in exc.path.parents or exc.path == work:
+            raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
+        raise
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
-    record = summary(rec, photos, seconds) | {"dropped": dropped}
+    record = summary(rec, photos, seconds) | {"dropped": dropped} | chosen
     with _colmap_log(pycolmap, config.verbose):
-        _write_result(rec, work / "images", work, ctx.path(SFM_DIR), config.undistort, record)
+        _write_result(rec, images, work, ctx.path(SFM_DIR), config.undistort, record)
     ctx.log.info("sfm: %d of %d photos registered, %d points", record["num_registered"], len(photos), rec.num_points3D())
     result = pycolmap.Reconstruction(str(_model_dir(ctx.path(SFM_DIR))))
     return {"sfm_reconstruction": result, "sfm_summary": record}
+
+
+def rotation_agreement(rotations: "dict[str, object]", reference: "dict[str, object]", tolerance: float = 5.0) -> "dict[str, float | int]":
+    """Agreement of camera rotations (``cam_from_world``, 3x3 arrays, by name) with a reference's, up to one rotation of
+    the world: for each shared name the alignment that makes that camera exact, keeping the one under which most cameras
+    agree within ``tolerance`` degrees (a reconstruction that folds part of a capture keeps the rest exact, and a
+    least-squares alignment would blur which part is wrong). Returns the shared count, the agreeing count and the
+    median error in degrees under that alignment."""
+    import numpy as np
+
+    names = sorted(set(rotations) & set(reference))
+    if not names:
+        return {"shared": 0, "agree": 0, "median_error": float("nan")}
+    ours = np.stack([np.asarray(rotations[n], dtype=float) for n in names])
+    ref = np.stack([np.asarray(reference[n], dtype=float) for n in names])
+    best = None
+    for k in range(len(names)):
+        world = ref[k].T @ ours[k]  # the reference's world from ours
+        rel = np.einsum("nij,kj,nlk->nil", ours, world, ref)  # ours @ world.T @ ref.T per camera
+        err = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+        if best is None or (err < tolerance).sum() > (best < tolerance).sum():
+            best = err
+    return {"shared": len(names), "agree": int((best < tolerance).sum()), "median_error": round(float(np.median(best)), 2)}
+
+
+def model_rotations(rec) -> "dict[str, object]":
+    """``cam_from_world`` rotations (3x3 arrays) of a pycolmap reconstruction's posed images, by file name."""
+    import numpy as np
+
+    return {Path(img.name).name: np.asarray(img.cam_from_world().rotation.matrix()) for img in rec.images.values() if img.has_pose}
+
+
+SAME_POSES = 0.9
+"""Share of the shared photos whose rotations agree (:func:`rotation_agreement`) for two reconstructions to count as one."""
+
+MIN_REGISTERED_SHARE = 0.75
+"""Reconstructions registering fewer photos than this share of the most any registered are not candidates."""
+
+CHECK_SECONDS = 15.0
+"""What one reconstruction's :func:`photometric_check` takes on a 2-core CPU (about 100 steps and the load), for the budget."""
+
+CHECK_MAX_SHARE = 0.25
+"""Share of the time left that the checks may take under a time budget (otherwise the first reconstruction is kept)."""
+
+CHECK_VIEWS = 3
+"""Held-out photographs of :func:`photometric_check` (registered in every reconstruction, spread over their names)."""
+
+CHECK_MAX_SIZE = 200
+"""Longest side of the check's renders."""
+
+
+def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[float]":
+    """Held-out PSNR of a short ``fast`` fit (``steps`` steps) on each reconstruction (COLMAP folders of the same
+    photos), scored on the same :data:`CHECK_VIEWS` photographs registered in all of them, left out of every fit:
+    poses that fold part of a capture cannot be rendered consistently from the others' views."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from nerfpipe.data.background import background_colors
+    from nerfpipe.data_adapters import load
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.training.evaluation import eval_sizes, score_views
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
+
+    scenes = [load(folder) for folder in folders]
+    names = [[Path(p).name for p in scene.images.paths] for scene in scenes]
+    shared = sorted(set.intersection(*(set(n) for n in names)))
+    held = set(shared[:: max(1, len(shared) // CHECK_VIEWS)][:CHECK_VIEWS])
+    from nerfpipe.util.progress import track
+
+    scores = []
+    for k, (scene, scene_names) in track(enumerate(zip(scenes, names)), "sfm: checking the reconstructions", total=len(scenes)):
+        val = np.array([i for i, n in enumerate(scene_names) if n in held], dtype=np.int64)
+        train = np.array([i for i, n in enumerate(scene_names) if n not in held], dtype=np.int64)
+        scene = dataclasses.replace(scene, splits={"train": train, "val": val, "test": np.zeros(0, dtype=np.int64)})
+        # iters unbounded: the schedules of a run of the usual length, whose first steps these are
+        cfg = TrainerConfig(iters=10**9, rays_per_step=None, eval_every=0, video_frames=0, checkpoint_every=0, eval_max_size=CHECK_MAX_SIZE,
+                            eval_supersample=1)
+        trainer = Trainer(cfg, scene, "fast", FastConfig(), work / f"check{k}")
+        trainer.model.train()
+        while trainer.step < steps:
+            trainer.train_step()
+        trainer.model.eval()
+        idx = [int(i) for i in val]
+        with torch.no_grad():
+            out = score_views(trainer.model, scene, idx, eval_sizes(scene, idx, 1.0, CHECK_MAX_SIZE),
+                              background_colors(trainer.eval_bg, 1)[0], trainer.cfg.device, trainer.cfg.chunk)
+        scores.append(float(np.mean(out["psnr"])))
+    return scores
+
+
+def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "float | None"):
+    """One reconstruction of ``photos`` in ``work`` at ``config.max_image_size``: (reconstruction, seconds, images folder)."""
+    info = prepare_images(photos, work / "images", config.max_image_size)
+    group_photos(work / "images", [p.name for p in photos], info, work / "grouped")
+    rec, seconds = reconstruct(work / "grouped", work, config, info, time_left)
+    flatten_names(rec)
+    return rec, seconds, work / "images"
+
+
+def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log) -> "tuple[object, Path, dict]":
+    """The reconstruction to keep among ``first`` (``(rec, images folder)``, at ``max_image_size``, its failed
+    registrations dropped) and those at
+    ``candidate_sizes`` (see :attr:`SfmConfig.candidate_sizes`); returns it, its images folder and what was decided."""
+    rec, images = first
+    record: dict = {}
+    if not config.candidate_sizes or len(photos) > config.candidate_max_photos:
+        return rec, images, record
+    started = time.monotonic()
+    candidates = [(config.max_image_size, rec, images)]
+    for size in config.candidate_sizes:
+        if time_left is not None and time.monotonic() - started > CHECK_MAX_SHARE * time_left:
+            break
+        cfg = dataclasses_replace(config, max_image_size=size)
+        try:
+            other, _, other_images = _candidate(photos, work / f"size{size}", cfg, time_left)
+        except NerfpipeError:
+            continue
+        drop_failed_registrations(other, config.max_centre_spread)
+        candidates.append((size, other, other_images))
+    most = max(c[1].num_reg_images() for c in candidates)  # one that registers far fewer photos is no alternative
+    candidates = [c for c in candidates if c[1].num_reg_images() >= MIN_REGISTERED_SHARE * most]
+    rotations = [model_rotations(other) for _, other, _ in candidates]
+    rows, groups = [], []  # groups: indices of candidates whose poses agree, the first of each its representative
+    for i, (size, other, _) in enumerate(candidates):
+        agreement = rotation_agreement(rotations[i], rotations[0])
+        rows.append({"max_image_size": size, "registered": other.num_reg_images(), **agreement})
+        for group in groups:
+            a = rotation_agreement(rotations[i], rotations[group[0]])
+            if a["agree"] >= SAME_POSES * a["shared"]:
+                group.append(i)
+                break
+        else:
+            groups.append([i])
+    record["candidates"] = rows
+    if len(groups) == 1:
+        return candidates[0][1], candidates[0][2], record
+    reps = [max(group, key=lambda i: candidates[i][1].num_reg_images()) for group in groups]
+    reps.sort(key=lambda i: -candidates[i][1].num_reg_images())
+    if time_left is not None:  # as many as the time allows, those registering the most photos first
+        reps = reps[: int(CHECK_MAX_SHARE * (time_left - (time.monotonic() - started)) // CHECK_SECONDS)]
+    if len(reps) < 2:
+        log.warning("sfm: the reconstructions at %s px disagree, and the time left allows no check: kept the first",
+                    ", ".join(str(r["max_image_size"]) for r in rows))
+        record["unchecked"] = True
+        return candidates[0][1], candidates[0][2], record
+    folders = []
+    for i in reps:
+        size, other, other_images = candidates[i]
+        folder = work / f"check_model{size}"
+        shutil.rmtree(folder, ignore_errors=True)
+        _write_result(other, other_images, work / f"model{size}", folder, config.undistort, {})
+        folders.append(folder)
+    psnr = photometric_check(folders, config.check_steps, work)
+    for i, p in zip(reps, psnr):
+        rows[i]["check_psnr"] = round(p, 2)
+    best = reps[max(range(len(reps)), key=lambda k: (psnr[k], candidates[reps[k]][1].num_reg_images()))]
+    size, rec, images = candidates[best]
+    log.info("sfm: the reconstructions at %s px disagree; kept %d px (held-out PSNR of a %d-step fit: %s dB)",
+             ", ".join(str(r["max_image_size"]) for r in rows), size, config.check_steps,
+             " / ".join(f"{candidates[i][0]} px {p:.2f}" for i, p in zip(reps, psnr)))
+    record["kept_max_image_size"] = size
+    return rec, images, record
 
 
 def _adapter_reads(path: Path) -> bool:
