@@ -386,7 +386,8 @@ CHECK_MAX_SIZE = 200
 def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[float]":
     """Held-out PSNR of a short ``fast`` fit (``steps`` steps) on each reconstruction (COLMAP folders of the same
     photos), scored on the same :data:`CHECK_VIEWS` photographs registered in all of them, left out of every fit:
-    poses that fold part of a capture cannot be rendered consistently from the others' views."""
+    poses that fold part of a capture cannot be rendered consistently from the others' views. NaN for every one
+    when they share no more than :data:`CHECK_VIEWS` photos."""
     import dataclasses
 
     import numpy as np
@@ -401,6 +402,8 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[fl
     scenes = [load(folder) for folder in folders]
     names = [[Path(p).name for p in scene.images.paths] for scene in scenes]
     shared = sorted(set.intersection(*(set(n) for n in names)))
+    if len(shared) <= CHECK_VIEWS:  # nothing to train on and score alike
+        return [float("nan")] * len(scenes)
     held = set(shared[:: max(1, len(shared) // CHECK_VIEWS)][:CHECK_VIEWS])
     from nerfpipe.util.progress import track
 
@@ -488,6 +491,11 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
         _write_result(other, other_images, work / f"model{size}", folder, config.undistort, {})
         folders.append(folder)
     psnr = photometric_check(folders, config.check_steps, work)
+    if any(p != p for p in psnr):  # NaN: too few photos registered in all of them to compare
+        log.warning("sfm: the reconstructions at %s px disagree and share too few photos to compare: kept the first",
+                    ", ".join(str(r["max_image_size"]) for r in rows))
+        record["unchecked"] = True
+        return candidates[0][1], candidates[0][2], record
     for i, p in zip(reps, psnr):
         rows[i]["check_psnr"] = round(p, 2)
     best = reps[max(range(len(reps)), key=lambda k: (psnr[k], candidates[reps[k]][1].num_reg_images()))]
