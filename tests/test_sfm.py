@@ -219,3 +219,13 @@ def test_the_photometric_check_tells_a_folded_reconstruction_from_the_right_one(
     folded = _mouse_subset(scene_path, tmp_path / "folded", names, fold=names[1::2])
     good, bad = photometric_check([right, folded], steps=60, work=tmp_path / "work")
     assert good > bad + 1.0
+
+
+def test_reconstructions_sharing_too_few_photos_are_not_compared(scene_path, tmp_path):
+    from nerfpipe.plugins.sfm import photometric_check
+
+    names = sorted(p.name for p in (scene_path("colmap_mouse") / "images").iterdir())[::4]
+    a = _mouse_subset(scene_path, tmp_path / "a", names[:6], size=64)
+    b = _mouse_subset(scene_path, tmp_path / "b", names[3:9], size=64)  # 3 photos in both
+    scores = photometric_check([a, b], steps=1, work=tmp_path / "work")
+    assert len(scores) == 2 and all(s != s for s in scores)
