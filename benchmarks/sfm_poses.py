@@ -14,7 +14,6 @@ if __name__ == "__main__":  # run as a program: the CLI's process settings, befo
     runtime.apply()
 
 import json
-import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -60,10 +59,7 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
             with tempfile.TemporaryDirectory() as tmp:
                 work = Path(tmp)
                 start = time.monotonic()
-                info = sfm.prepare_images(photos, work / "images", config.max_image_size)
-                sfm.group_photos(work / "images", [p.name for p in photos], info, work / "grouped")
-                rec, _ = sfm.reconstruct(work / "grouped", work, config, info)
-                sfm.flatten_names(rec)
+                rec, _, _ = sfm._candidate(photos, work, config, None)
                 sfm.drop_failed_registrations(rec, config.max_centre_spread)
                 seconds = time.monotonic() - start
                 agreement = rotation_agreement(model_rotations(rec), reference, cfg.tolerance)
@@ -71,7 +67,6 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
                                  **agreement))
                 print(json.dumps(rows[-1]), flush=True)
-                shutil.rmtree(work / "grouped", ignore_errors=True)
     finally:
         sfm._options = options
     return rows

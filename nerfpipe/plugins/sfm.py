@@ -321,7 +321,7 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
             ctx.log.warning("sfm: dropped %d registrations as failed (bogus intrinsics or far off): %s", len(dropped), ", ".join(dropped))
         rec, images, chosen = choose_reconstruction(photos, work, config, (rec, images), ctx.time_left(), ctx.log)
     except NerfpipeError as exc:  # name the user's photos, not the scratch folder (a photo at fault keeps its name)
-        if exc.path is not None and work in exc.path.parents or exc.path == work:
+        if exc.path is not None and (exc.path == work or work in exc.path.parents):
             raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
         raise
     if rec.num_reg_images() < config.min_registered:
@@ -391,13 +391,13 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[fl
     import dataclasses
 
     import numpy as np
-    import torch
 
     from nerfpipe.data.background import background_colors
     from nerfpipe.data_adapters import load
     from nerfpipe.models.fast import FastConfig
     from nerfpipe.training.evaluation import eval_sizes, score_views
     from nerfpipe.training.trainer import Trainer, TrainerConfig
+    from nerfpipe.util.progress import track
 
     scenes = [load(folder) for folder in folders]
     names = [[Path(p).name for p in scene.images.paths] for scene in scenes]
@@ -405,8 +405,6 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[fl
     if len(shared) <= CHECK_VIEWS:  # nothing to train on and score alike
         return [float("nan")] * len(scenes)
     held = set(shared[:: max(1, len(shared) // CHECK_VIEWS)][:CHECK_VIEWS])
-    from nerfpipe.util.progress import track
-
     scores = []
     for k, (scene, scene_names) in track(enumerate(zip(scenes, names)), "sfm: checking the reconstructions", total=len(scenes)):
         val = np.array([i for i, n in enumerate(scene_names) if n in held], dtype=np.int64)
@@ -419,11 +417,9 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[fl
         trainer.model.train()
         while trainer.step < steps:
             trainer.train_step()
-        trainer.model.eval()
-        idx = [int(i) for i in val]
-        with torch.no_grad():
-            out = score_views(trainer.model, scene, idx, eval_sizes(scene, idx, 1.0, CHECK_MAX_SIZE),
-                              background_colors(trainer.eval_bg, 1)[0], trainer.cfg.device, trainer.cfg.chunk)
+        idx = [int(i) for i in val]  # rendered in eval mode without gradients (render_cameras)
+        out = score_views(trainer.model, scene, idx, eval_sizes(scene, idx, 1.0, CHECK_MAX_SIZE),
+                          background_colors(trainer.eval_bg, 1)[0], trainer.cfg.device, trainer.cfg.chunk)
         scores.append(float(np.mean(out["psnr"])))
     return scores
 
@@ -465,7 +461,7 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
         agreement = rotation_agreement(rotations[i], rotations[0])
         rows.append({"max_image_size": size, "registered": other.num_reg_images(), **agreement})
         for group in groups:
-            a = rotation_agreement(rotations[i], rotations[group[0]])
+            a = agreement if group[0] == 0 else rotation_agreement(rotations[i], rotations[group[0]])
             if a["agree"] >= SAME_POSES * a["shared"]:
                 group.append(i)
                 break
