@@ -7,7 +7,8 @@
 #   bash benchmarks/cuda_checks.sh LEGO_NPZ BLENDER_LEGO_DIR
 #
 # LEGO_NPZ: ../shared/data/lego_200x200/lego_200x200.npz (or a copy); BLENDER_LEGO_DIR: ../shared/data/blender_lego.
-# Run it where torch sees CUDA and nerfpipe is installed (pip install -e .).
+# Run it where torch sees CUDA and nerfpipe is installed (pip install -e .); benchmarks/gpu_bundle.sh prepares both
+# for the device tool. EAGER=1 adds the blender bench with eager steps (--cuda-graph False) for comparison.
 set -o pipefail
 LEGO=${1:?lego_200x200.npz}
 BLENDER=${2:?blender_lego folder}
@@ -30,4 +31,4 @@ timeout 100 python3 -m benchmarks.step_profile "$LEGO" --device cuda --rays 4096
     --profiled-steps 8 2>&1 | grep "^{"
 bench blender_graph 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5
 bench lego_graph_4096 100 "$LEGO" --presets fast-small --budgets 10 20 60 --eval-views 0 --rays-per-step 4096
-bench blender_eager 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5 --cuda-graph False
+[ -n "${EAGER:-}" ] && bench blender_eager 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5 --cuda-graph False
