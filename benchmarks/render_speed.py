@@ -121,7 +121,7 @@ def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> 
     from nerfpipe.training.evaluation import ground_truth, score
 
     idx, cams = val_cameras(scene, cfg.psnr_views)
-    bg = background_colors(backgrounds(run_cfg["trainer"]["background"], scene.has_alpha)[1], 1)[0]
+    bg = background_colors(backgrounds(run_cfg["trainer"]["background"], scene.has_alpha, scene.shows_surroundings)[1], 1)[0]
     counter = _Counter(model.field.density)
     model.field.density = counter
     kept = []

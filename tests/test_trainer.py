@@ -242,7 +242,11 @@ def test_rgba_targets_use_the_batch_background():
     torch.testing.assert_close(out[2], torch.tensor([0.0, 0.0, a]) + (1 - a) * bg[2])
     assert not torch.equal(bg[0], bg[1])  # random per ray
     assert backgrounds("auto", True) == ("random", "white") and backgrounds("auto", False) == ("black", "black")
+    assert backgrounds("auto", False, surroundings=True) == ("grey", "grey")  # a real capture: photographs of more than the box
+    assert backgrounds("auto", True, surroundings=True) == ("random", "white")  # alpha decides first
+    assert backgrounds("black", False, surroundings=True) == ("black", "black")  # a chosen colour stays
     assert background_colors("white", 2).tolist() == [[1.0, 1.0, 1.0]] * 2
+    assert background_colors("grey", 2).tolist() == [[0.5, 0.5, 0.5]] * 2
 
 
 def test_stale_optimizer_state_of_resized_parameters_is_dropped():

@@ -1,6 +1,7 @@
 """The browser viewer: what it draws, the live render (sizes, strips = whole frames), camera paths rendered
 headless equal to the viewer's frames, the server, the page in headless Chromium, and training watched."""
 
+import json
 import math
 import os
 import time
@@ -252,7 +253,11 @@ def test_a_camera_path_renders_headless_as_the_viewer_renders_it(run, tmp_path):
         headless = iio.imread(run / "render" / "my_path_frames" / f"{i:05d}.png")
         assert headless.shape == frames[-1].image.shape == (16, 20, 3)
         assert np.abs(headless.astype(int) - frames[-1].image.astype(int)).max() <= 1
-    whole = render_cameras(open_source(run).model, pinhole_camera(m[0].numpy(), 0.7, 20, 16))[0]  # a whole frame = its strips
+    from nerfpipe.outputs.novel_views import RenderConfig, background
+
+    src = open_source(run)  # the run's evaluation background (grey: its scene shows surroundings), as both renderers use it
+    bg = background(RenderConfig(), json.loads((run / "config.json").read_text()), src.scene)
+    whole = render_cameras(src.model, pinhole_camera(m[0].numpy(), 0.7, 20, 16), background=bg)[0]  # a whole frame = its strips
     assert (run / "render" / "my_path.gif").is_file() and whole.rgb.shape == (16, 20, 3)
     assert np.abs(to_uint8(whole.rgb).astype(int) - iio.imread(run / "render" / "my_path_frames" / "00000.png").astype(int)).max() <= 1
 

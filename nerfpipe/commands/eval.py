@@ -51,7 +51,7 @@ def eval_run(
     scene, model, cfg = load_run(folder, device)
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)
-    bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha)[1], 1)[0]
+    bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha, scene.shows_surroundings)[1], 1)[0]
     lpips, lpips_note = lpips_scorer(device)
     start = time.perf_counter()
     scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True,

@@ -9,11 +9,12 @@ import torch
 
 from nerfpipe.util.typing import Float, Tensor, UInt8
 
-BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "grey": (0.5, 0.5, 0.5)}
+"""The named constant backgrounds."""
 
 
 def background_colors(mode: str, n: int, generator: "torch.Generator | None" = None, device=None) -> Float[Tensor, "n 3"]:
-    """``n`` background colours: a named constant (``black``/``white``) or ``random`` per ray."""
+    """``n`` background colours: a named constant (``black``/``white``/``grey``) or ``random`` per ray."""
     if mode == "random":
         return torch.rand((n, 3), generator=generator).to(device)
     r, g, b = BACKGROUNDS[mode]
@@ -31,10 +32,17 @@ def composite_pixels(pixels: UInt8[Tensor, "*bs C"], background: Float[Tensor, "
     return rgb
 
 
-def backgrounds(mode: str, has_alpha: bool) -> "tuple[str, str]":
-    """(training, evaluation) background modes for a config value."""
+def backgrounds(mode: str, has_alpha: bool, surroundings: bool = False) -> "tuple[str, str]":
+    """(training, evaluation) background modes for a config value; ``auto``: random in training and white at
+    evaluation for RGBA data; grey for photographs that show the object's surroundings
+    (``SceneData.shows_surroundings``), black otherwise.
+
+    Grey for real captures: what the learned layers (the colour behind the box and the field there) leave
+    transparent is this colour, in training and in every render. A held-out view sees some of the surroundings that
+    no training photograph shows (photos_sacre_coeur's steps and balustrade in its two held-out views): black there
+    is the worst guess for a photograph's colours, mid-grey about the mean one."""
     if mode == "auto":
-        return ("random", "white") if has_alpha else ("black", "black")
+        return ("random", "white") if has_alpha else ("grey", "grey") if surroundings else ("black", "black")
     if mode == "random":
         return "random", "white"
     return mode, mode

@@ -185,6 +185,12 @@ class SceneData:
     def split_cameras(self, split: str) -> Cameras:
         return self.cameras[torch.as_tensor(self.splits[split], dtype=torch.long)]
 
+    @property
+    def shows_surroundings(self) -> bool:
+        """Whether the photographs show more than the object region: a real capture (sparse points from SfM, no
+        alpha), whose floor, walls and sky a model must explain too (``SceneInfo.unbounded``)."""
+        return self.points is not None and not self.has_alpha
+
     def __post_init__(self) -> None:
         for name in SPLITS:
             self.splits.setdefault(name, np.zeros(0, dtype=np.int64))

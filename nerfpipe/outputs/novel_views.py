@@ -36,7 +36,7 @@ class RenderConfig:
     """Number of frames (orbit and test; a file gives its own)."""
     depth: bool = True
     """Also write depth_<path>.gif (turbo colour map, mapping in the JSON)."""
-    background: Literal["auto", "black", "white"] = "auto"
+    background: Literal["auto", "black", "white", "grey"] = "auto"
     """auto: the training run's evaluation background."""
     size: "str | None" = None
     """Frame size WxH, e.g. 800x800 (default: the cameras' own times ``scale``, capped at ``max_size``)."""
@@ -132,7 +132,7 @@ def background(config: RenderConfig, train_config: "dict | None", scene):
     if config.background != "auto":
         return background_colors(config.background, 1)[0]
     mode = (train_config or {}).get("trainer", {}).get("background", "auto")
-    return background_colors(backgrounds(mode, scene.has_alpha)[1], 1)[0]
+    return background_colors(backgrounds(mode, scene.has_alpha, scene.shows_surroundings)[1], 1)[0]
 
 
 def plan_frames(config: RenderConfig, seconds_per_frame: float, time_left: "float | None", frames: "int | None" = None):

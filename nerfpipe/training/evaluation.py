@@ -98,8 +98,13 @@ every view (:func:`final_eval_need`) needs more than :data:`FINAL_SHARE` and at 
 where it needs more, no share would score every view, and :data:`FINAL_SHARE` is left (fewer or smaller views)."""
 FINAL_MARGIN = 1.3
 """Safety factor on the final evaluation's estimated time (:func:`final_eval_need`)."""
-PROBE = 4
-"""Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side."""
+PROBE = 2
+"""Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side (the
+latest validation's time per ray is no guide: photos_sacre_coeur's gave its final 2 x 2 rays 24.4 s, which took
+84.8 s with the appearance fit, and the run ended 15 s past its budget). The probe's fixed per-call costs make its
+time an overestimate: at a quarter of the side colmap_mouse's final 2 x 2 rays were estimated at 65.4 s (1.14 times
+over), more than the 64 s allowed, though training had stopped early to leave them that time; one ray per pixel took
+14 s and the rest went unused. At half the side the probe renders four times as many rays (about 0.4 s more there)."""
 ENCODE_SHARE = 0.2
 """Of the video's time, the share kept for encoding the GIFs and the MP4."""
 

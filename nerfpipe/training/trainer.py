@@ -176,7 +176,8 @@ class TrainerConfig:
     """CPU threads for torch while training (None: as the process has them; restored afterwards). On a
     loaded machine 1 can be much faster for small models."""
     background: str = "auto"
-    """black | white | random | auto (random in training and white at evaluation for RGBA data, else black)."""
+    """black | white | grey | random | auto (random in training and white at evaluation for RGBA data; grey for real
+    captures, whose photographs show the surroundings; else black: :func:`nerfpipe.data.background.backgrounds`)."""
     checkpoint_every: int = 500
     """Write checkpoint.safetensors every this many iterations (and always at the end)."""
     chunk: int = 4096
@@ -222,7 +223,7 @@ class TrainerConfig:
             ("supersample_from", self.supersample_from is None or self.supersample_from >= 0, "0 or more"),
             ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
-            ("background", self.background in ("black", "white", "random", "auto"), "black, white, random or auto"),
+            ("background", self.background in ("black", "white", "grey", "random", "auto"), "black, white, grey, random or auto"),
             ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
         )
         refuse_unless((name, ok, what, getattr(self, name)) for name, ok, what in checks)
@@ -237,7 +238,7 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneIn
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.points is not None and not scene.has_alpha, focal_spread=spread, arc=camera_arc(cams, scene.aabb.mean(0)),
+                     unbounded=scene.shows_surroundings, focal_spread=spread, arc=camera_arc(cams, scene.aabb.mean(0)),
                      pixel_footprint=pixel_footprint(cams, scene.aabb))
 
 
@@ -291,7 +292,7 @@ class Trainer:
         self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
-        self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha)
+        self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha, scene.shows_surroundings)
         info = scene_info(scene, cfg.train_max_size)
         model, init_rng = seeded_init(lambda: model_config.setup(info), cfg.seed)
         self.model: Model = model.to(cfg.device)
