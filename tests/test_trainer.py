@@ -174,6 +174,30 @@ def test_final_evaluation_supersamples_small_views_when_every_view_fits(tiny_sce
     assert plan["supersample"] == supersample and plan["size"] == [SIZE // 2, SIZE // 2]
 
 
+def test_the_appearance_fit_is_planned_from_two_short_fits():
+    """The final evaluation plans for the appearance fit of each view (NeRF-W's protocol) from two short fits timed:
+    a fit of ``s`` steps that costs ``a + b s`` is estimated at the full count."""
+    from contextlib import contextmanager
+
+    from nerfpipe.training.evaluation import FIT_PROBE_STEPS, appearance_fit_seconds
+
+    clock = [0.0]
+
+    class Fits:
+        appearance_fit_steps = 1024
+
+        @contextmanager
+        def fitted_appearance(self, rays, rgb, background, steps=None):
+            clock[0] += 2.0 + 0.01 * (self.appearance_fit_steps if steps is None else steps)  # a fit of 2 s + 10 ms a step
+            yield True
+
+    model = Fits()
+    assert appearance_fit_seconds(model, None, None, None, clock=lambda: clock[0]) == pytest.approx(2.0 + 0.01 * 1024)
+    assert clock[0] == pytest.approx(2 * 2.0 + 0.01 * sum(FIT_PROBE_STEPS))  # only the short fits ran
+    model.appearance_fit_steps = 0  # nothing to fit: nothing timed
+    assert appearance_fit_seconds(model, None, None, None, clock=lambda: clock[0]) == 0.0
+
+
 def test_progress_eta_under_a_time_budget_is_the_time_to_the_end_of_the_run():
     from nerfpipe.util.progress import TrainProgress
 

@@ -106,11 +106,17 @@ class Model(nn.Module):
         none; None when the batch has none); models that do not use it ignore it."""
         return {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
 
+    appearance_fit_steps: int = 0
+    """Optimiser steps of :meth:`fitted_appearance` by default (0: nothing is fitted); the final evaluation times a
+    few of them to plan for the fit (:func:`nerfpipe.training.evaluation.appearance_fit_seconds`)."""
+
     @contextmanager
-    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"]) -> Iterator[bool]:
+    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"],
+                          steps: "int | None" = None) -> Iterator[bool]:
         """Within the block, render as the image that shows ``rgb`` along ``rays`` was taken: models with
         per-image appearance fit a held-out view's appearance to these pixels (the NeRF-W protocol: fit on
-        part of an image, score the rest). Yields whether anything was fitted; default: nothing to fit."""
+        part of an image, score the rest), in ``steps`` optimiser steps (None: the model's own count; fewer to time
+        the fit). Yields whether anything was fitted; default: nothing to fit."""
         yield False
 
     def callbacks(self) -> "dict[Callback, list[Callable[[int], None]]]":

@@ -659,11 +659,16 @@ class FastModel(Model):
         t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.object_box)
         return torch.where(t_out >= t_in, t_out, torch.zeros_like(t_out)).clamp(min=self.info.near)
 
+    @property
+    def appearance_fit_steps(self) -> int:
+        return self.cfg.appearance_fit_steps if self.appearance is not None else 0
+
     @contextmanager
-    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"]) -> Iterator[bool]:
+    def fitted_appearance(self, rays: RayBundle, rgb: Float[Tensor, "num_rays 3"], background: Float[Tensor, "3"],
+                          steps: "int | None" = None) -> Iterator[bool]:
         """Within the block (evaluation), render with the colour correction and image code fitted by Adam to
-        ``rgb`` along ``rays`` (``appearance_fit_steps`` steps of up to 2048 of them, everything else frozen),
-        instead of the mean. Yields False, fitting nothing, without per-image appearance."""
+        ``rgb`` along ``rays`` (``steps`` steps, default ``appearance_fit_steps``, of up to 2048 of them, everything
+        else frozen), instead of the mean. Yields False, fitting nothing, without per-image appearance."""
         if self.appearance is None:
             yield False
             return
@@ -671,7 +676,7 @@ class FastModel(Model):
         background = background.to(target)
         size = 12 + (0 if self.image_codes is None else self.image_codes.shape[1])  # the correction, then the code
         vec = torch.zeros(size, device=flat.device, requires_grad=True)
-        steps = self.cfg.appearance_fit_steps
+        steps = self.cfg.appearance_fit_steps if steps is None else steps
         opt = torch.optim.Adam([vec], lr=APPEARANCE_FIT_LR)
         decay = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: APPEARANCE_FIT_FINAL_LR ** (k / max(steps - 1, 1)))
         frozen = [p for p in self.parameters() if p.requires_grad]

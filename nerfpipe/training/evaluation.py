@@ -263,23 +263,51 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     pw, ph = max(1, w // PROBE), max(1, h // PROBE)  # the trained model's speed (per-view costs make it an overestimate)
     first = scene.cameras[torch.tensor(idx[:1], dtype=torch.long)]
     probe = resize_cameras(first, pw, ph).to(cfg.device)
+    bg = background_colors(trainer.eval_bg, 1)[0]
     probe_start = time.perf_counter()
-    render_cameras(trainer.model, probe, cfg.chunk, background_colors(trainer.eval_bg, 1)[0])
-    per_view = (time.perf_counter() - probe_start) / (pw * ph) * w * h
-    supersample = 1  # the most rays per pixel with which every view fits at full size, else one
+    render_cameras(trainer.model, probe, cfg.chunk, bg)
+    render = (time.perf_counter() - probe_start) / (pw * ph) * w * h
+    rays, gt = camera_rays(probe, 0)[:, : max(1, pw // 2)], ground_truth(scene, idx[0], bg, (pw, ph))[:, : max(1, pw // 2)]
+    fit = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)  # the fit's time is the view's too
+    supersample, per_view = 1, render + fit  # the most rays per pixel with which every view fits at full size, else one
     for k in range(view_supersample(first, 0, (w, h), cfg.eval_supersample), 1, -1):
-        if len(idx) * per_view * k**2 <= allowed - (time.perf_counter() - start):
-            supersample, per_view = k, per_view * k**2
+        if len(idx) * (render * k**2 + fit) <= allowed - (time.perf_counter() - start):
+            supersample, per_view = k, render * k**2 + fit
             break
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
-    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
-    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
+    plan_ = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
+    psnr, ssim = validate(trainer, plan_.frames, plan_.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
                           supersample=supersample)
     views = trainer.history["val"][-1][-1]
-    (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
-    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h], "supersample": supersample,
-                          "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
+    (w, h), = _eval_sizes(scene, idx[:1], cfg, plan_.scale)
+    plan["final_eval"] = {"views": views, "planned": plan_.frames, "of": len(idx), "scale": plan_.scale, "size": [w, h], "supersample": supersample,
+                          "appearance_fit_seconds": fit, "estimated_seconds": plan_.estimated_seconds, "seconds": time.perf_counter() - start}
     return psnr, ssim, views
+
+
+FIT_PROBE_STEPS = (32, 160)
+"""Steps of the two short appearance fits whose times give a whole fit's (:func:`appearance_fit_seconds`)."""
+
+
+def appearance_fit_seconds(model, rays, rgb, background, clock=time.perf_counter) -> float:
+    """Seconds the final evaluation's appearance fit of one view takes (:meth:`~nerfpipe.models.base.Model.fitted_appearance`;
+    0 for models without per-image appearance), from two short fits to ``rgb`` along ``rays``: their difference gives
+    a step's time, the shorter one what a fit costs besides its steps (shorter fits are too noisy: on
+    photos_sacre_coeur 8 and 24 steps gave 0.8 s for a fit that takes 9–14 s; 32 and 160 steps on the half-size probe
+    10.6–11.6 s, in 4.2–4.6 s). Before it was planned for, photos_sacre_coeur's final evaluation (2 views, 1,024 steps
+    each) was estimated at 11.3 s and took 46.9 s under ``nerfpipe run --time-budget 300``."""
+    full = model.appearance_fit_steps
+    if not full:
+        return 0.0
+    times = []
+    for steps in FIT_PROBE_STEPS:
+        t0 = clock()
+        with model.fitted_appearance(rays, rgb, background, steps=steps) as fitted:
+            times.append(clock() - t0)
+        if not fitted:
+            return 0.0
+    per_step = max(times[1] - times[0], 0.0) / (FIT_PROBE_STEPS[1] - FIT_PROBE_STEPS[0])
+    return times[0] + per_step * (full - FIT_PROBE_STEPS[0])
 
 
 def _final_share(cfg) -> float:
