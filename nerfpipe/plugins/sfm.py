@@ -289,7 +289,8 @@ def summary(rec, photos: "list[Path]", seconds: dict) -> dict:
     }
 
 
-def _write_result(rec, images: Path, work: Path, target: Path, undistort: bool, record: dict) -> None:
+def _write_result(rec, images: Path, work: Path, target: Path, undistort: bool, record: dict, verbose: bool = False) -> None:
+    """``target``: the reconstruction and its photos (undistorted by COLMAP, its INFO lines silenced unless ``verbose``)."""
     pycolmap = require("pycolmap", "colmap")
     model_dir = work / "best"
     shutil.rmtree(model_dir, ignore_errors=True)
@@ -297,7 +298,8 @@ def _write_result(rec, images: Path, work: Path, target: Path, undistort: bool, 
     rec.write(str(model_dir))
     with atomic_path(target) as tmp:
         if undistort:
-            pycolmap.undistort_images(tmp, model_dir, images)
+            with _colmap_log(pycolmap, verbose):
+                pycolmap.undistort_images(tmp, model_dir, images)
         else:
             shutil.copytree(images, tmp / "images")
             shutil.copytree(model_dir, tmp / "sparse" / "0")
@@ -327,8 +329,7 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
     record = summary(rec, photos, seconds) | {"dropped": dropped} | chosen
-    with _colmap_log(pycolmap, config.verbose):
-        _write_result(rec, images, work, ctx.path(SFM_DIR), config.undistort, record)
+    _write_result(rec, images, work, ctx.path(SFM_DIR), config.undistort, record, config.verbose)
     ctx.log.info("sfm: %d of %d photos registered, %d points", record["num_registered"], len(photos), rec.num_points3D())
     result = pycolmap.Reconstruction(str(_model_dir(ctx.path(SFM_DIR))))
     return {"sfm_reconstruction": result, "sfm_summary": record}
@@ -484,7 +485,7 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
         size, other, other_images = candidates[i]
         folder = work / f"check_model{size}"
         shutil.rmtree(folder, ignore_errors=True)
-        _write_result(other, other_images, work / f"model{size}", folder, config.undistort, {})
+        _write_result(other, other_images, work / f"model{size}", folder, config.undistort, {}, config.verbose)
         folders.append(folder)
     psnr = photometric_check(folders, config.check_steps, work)
     if any(p != p for p in psnr):  # NaN: too few photos registered in all of them to compare
