@@ -116,12 +116,12 @@ def frame_times(model, scene, cfg: RenderSpeedConfig) -> dict:
 
 
 def quality_and_samples(model, scene, run_cfg: dict, cfg: RenderSpeedConfig) -> "tuple[dict, list]":
-    from nerfpipe.data.background import background_colors, backgrounds
+    from nerfpipe.outputs.novel_views import RenderConfig, background
     from nerfpipe.outputs.render import render_cameras
     from nerfpipe.training.evaluation import ground_truth, score
 
     idx, cams = val_cameras(scene, cfg.psnr_views)
-    bg = background_colors(backgrounds(run_cfg["trainer"]["background"], scene.has_alpha, scene.shows_surroundings)[1], 1)[0]
+    bg = background(RenderConfig(), run_cfg, scene)  # the run's evaluation background
     counter = _Counter(model.field.density)
     model.field.density = counter
     kept = []

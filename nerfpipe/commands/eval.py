@@ -33,7 +33,7 @@ def eval_run(
     import json as _json
     import time
 
-    from nerfpipe.data.background import background_colors, backgrounds
+    from nerfpipe.outputs.novel_views import RenderConfig, background
     from nerfpipe.training.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
     from nerfpipe.training.runs import load_run, model_dir
     from nerfpipe.util.atomic import write_json
@@ -51,7 +51,7 @@ def eval_run(
     scene, model, cfg = load_run(folder, device)
     idx = eval_views(scene, views)
     sizes = eval_sizes(scene, idx, scale, max_size)
-    bg = background_colors(backgrounds(cfg["trainer"].get("background", "auto"), scene.has_alpha, scene.shows_surroundings)[1], 1)[0]
+    bg = background(RenderConfig(), cfg, scene)  # the run's evaluation background
     lpips, lpips_note = lpips_scorer(device)
     start = time.perf_counter()
     scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True,

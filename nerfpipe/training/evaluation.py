@@ -267,21 +267,24 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     probe_start = time.perf_counter()
     render_cameras(trainer.model, probe, cfg.chunk, bg)
     render = (time.perf_counter() - probe_start) / (pw * ph) * w * h
-    rays, gt = camera_rays(probe, 0)[:, : max(1, pw // 2)], ground_truth(scene, idx[0], bg, (pw, ph))[:, : max(1, pw // 2)]
-    fit = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)  # the fit's time is the view's too
-    supersample, per_view = 1, render + fit  # the most rays per pixel with which every view fits at full size, else one
+    fit_seconds = 0.0  # each view's appearance fit, where the model fits one: its time is the view's too
+    if trainer.model.appearance_fit_steps:
+        half = max(1, pw // 2)
+        rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
+        fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
+    supersample, per_view = 1, render + fit_seconds  # the most rays per pixel with which every view fits at full size, else one
     for k in range(view_supersample(first, 0, (w, h), cfg.eval_supersample), 1, -1):
-        if len(idx) * (render * k**2 + fit) <= allowed - (time.perf_counter() - start):
-            supersample, per_view = k, render * k**2 + fit
+        if len(idx) * (render * k**2 + fit_seconds) <= allowed - (time.perf_counter() - start):
+            supersample, per_view = k, render * k**2 + fit_seconds
             break
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
-    plan_ = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
-    psnr, ssim = validate(trainer, plan_.frames, plan_.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
+    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
+    psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
                           supersample=supersample)
     views = trainer.history["val"][-1][-1]
-    (w, h), = _eval_sizes(scene, idx[:1], cfg, plan_.scale)
-    plan["final_eval"] = {"views": views, "planned": plan_.frames, "of": len(idx), "scale": plan_.scale, "size": [w, h], "supersample": supersample,
-                          "appearance_fit_seconds": fit, "estimated_seconds": plan_.estimated_seconds, "seconds": time.perf_counter() - start}
+    (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
+    plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h], "supersample": supersample,
+                          "appearance_fit_seconds": fit_seconds, "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
     return psnr, ssim, views
 
 

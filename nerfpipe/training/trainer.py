@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from nerfpipe.data.background import backgrounds
+from nerfpipe.data.background import BACKGROUNDS, backgrounds
 from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.orbit import camera_arc
 from nerfpipe.data.scene import SceneData, check_images
@@ -223,7 +223,7 @@ class TrainerConfig:
             ("supersample_from", self.supersample_from is None or self.supersample_from >= 0, "0 or more"),
             ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
-            ("background", self.background in ("black", "white", "grey", "random", "auto"), "black, white, grey, random or auto"),
+            ("background", self.background in (*BACKGROUNDS, "random", "auto"), f"{', '.join(BACKGROUNDS)}, random or auto"),
             ("clock", self.clock in ("wall", "cpu"), "wall or cpu"),
         )
         refuse_unless((name, ok, what, getattr(self, name)) for name, ok, what in checks)
