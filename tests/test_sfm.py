@@ -229,3 +229,36 @@ def test_reconstructions_sharing_too_few_photos_are_not_compared(scene_path, tmp
     b = _mouse_subset(scene_path, tmp_path / "b", names[3:9], size=64)  # 3 photos in both
     scores = photometric_check([a, b], steps=1, work=tmp_path / "work")
     assert len(scores) == 2 and all(s != s for s in scores)
+
+
+def _subset_pair(scene_path, root: Path, fold: bool):
+    """(full, subset) for :func:`subset_check`: 16 of colmap_mouse's photos (half of them turned 80 degrees where
+    ``fold``: a block attached in the wrong place) and the 8 others alone, as the strict reconstruction leaves them."""
+    import pycolmap
+
+    names = sorted(p.name for p in (scene_path("colmap_mouse") / "images").iterdir())[::3][:16]
+    full = _mouse_subset(scene_path, root / "full", names, fold=names[1::2] if fold else ())
+    subset = _mouse_subset(scene_path, root / "subset", names[0::2])
+    return [(pycolmap.Reconstruction(str(f / "sparse" / "0")), f / "images") for f in (full, subset)]
+
+
+def test_the_strict_reconstruction_is_kept_where_the_photos_it_leaves_out_are_folded(scene_path, tmp_path):
+    """The sfm stage's last check (``strict_check``): a reconstruction whose extra photos sit 80 degrees off renders
+    the held-out photographs worse than the photos that strong matches tie together alone, so those are kept."""
+    from nerfpipe.plugins.sfm import STRICT_MARGIN, subset_check
+
+    full, subset = _subset_pair(scene_path, tmp_path, fold=True)
+    record = subset_check(full, subset, tmp_path / "work", steps=60)
+    assert record["registered"] == subset[0].num_reg_images() == record["agree"] >= 6  # the subset's poses are the right half's
+    assert record["kept"] and record["check_psnr"][1] >= record["check_psnr"][0] + STRICT_MARGIN
+
+
+def test_the_strict_reconstruction_is_not_kept_where_the_other_photos_fit(scene_path, tmp_path):
+    """Right poses: the extra photos help the fit (or do not hurt it by the margin), so every photo is kept."""
+    from nerfpipe.plugins.sfm import subset_check
+
+    full, subset = _subset_pair(scene_path, tmp_path, fold=False)
+    record = subset_check(full, subset, tmp_path / "work", steps=60)
+    assert not record["kept"], record
+    same = subset_check(full, full, tmp_path / "same", steps=60)  # not a proper subset: nothing to check
+    assert "check_psnr" not in same and "kept" not in same
