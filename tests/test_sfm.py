@@ -262,3 +262,10 @@ def test_the_strict_reconstruction_is_not_kept_where_the_other_photos_fit(scene_
     assert not record["kept"], record
     same = subset_check(full, full, tmp_path / "same", steps=60)  # not a proper subset: nothing to check
     assert "check_psnr" not in same and "kept" not in same
+    import pycolmap
+
+    fewer = pycolmap.Reconstruction(full[0])
+    for image_id in list(fewer.reg_image_ids())[:2]:  # two weakly attached photos are not a folded block
+        fewer.deregister_frame(fewer.image(image_id).frame_id)
+    two = subset_check(full, (fewer, full[1]), tmp_path / "two", steps=60)
+    assert two["registered"] == full[0].num_reg_images() - 2 and "check_psnr" not in two

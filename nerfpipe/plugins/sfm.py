@@ -477,6 +477,11 @@ STRICT_MARGIN = 0.3
 kept (:func:`strict_check`; a 100-step fit on 3 views varies by about 0.1-0.2 dB)."""
 
 
+STRICT_MIN_LEFT_OUT = 3
+"""Photos the strict reconstruction must leave out for :func:`subset_check` to test them (its two fits take about 30 s
+on a 2-core CPU; one or two weakly attached photos are left to the reconstruction as it is)."""
+
+
 def strict_check(num_photos: int, work: Path, config: SfmConfig, chosen, time_left: "float | None", log) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the first reconstruction's verified matches in
     ``work`` mapped again without the photo pairs of fewer than ``strict_min_inliers``) where that registers a proper
@@ -510,15 +515,16 @@ def strict_check(num_photos: int, work: Path, config: SfmConfig, chosen, time_le
 
 def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, verbose: bool = False) -> dict:
     """Whether the photos that ``full`` (``(reconstruction, images folder)``) registers beyond ``subset``'s fit the
-    others: where ``subset`` registers a proper subset of them (more than :data:`CHECK_VIEWS` + 2), a ``steps``-step fit
+    others: where ``subset`` registers a proper subset of them (more than :data:`CHECK_VIEWS` + 2, leaving out at least
+    :data:`STRICT_MIN_LEFT_OUT`), a ``steps``-step fit
     on each (:func:`photometric_check`, held-out photographs registered in both); ``kept`` is True where the subset's
     renders them at least :data:`STRICT_MARGIN` dB better. Returns what :func:`strict_check` records."""
     (rec, images), (other, other_images) = full, subset
     names = {Path(img.name).name for img in rec.images.values() if img.has_pose}
     subset_names = {Path(img.name).name for img in other.images.values() if img.has_pose}
     record = {"registered": len(subset_names), **rotation_agreement(model_rotations(other), model_rotations(rec))}
-    if not subset_names < names or len(subset_names) <= CHECK_VIEWS + 2:  # the same photos, others, or too few to fit
-        return record
+    if not subset_names < names or len(subset_names) <= CHECK_VIEWS + 2 or len(names - subset_names) < STRICT_MIN_LEFT_OUT:
+        return record  # the same photos, others, too few to fit, or too few left out to be a folded block
     folders = []
     for name, (model, model_images) in (("full", (rec, images)), ("subset", (other, other_images))):
         folder = work / f"check_{name}"
