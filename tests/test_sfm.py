@@ -269,3 +269,30 @@ def test_the_strict_reconstruction_is_not_kept_where_the_other_photos_fit(scene_
         fewer.deregister_frame(fewer.image(image_id).frame_id)
     two = subset_check(full, (fewer, full[1]), tmp_path / "two", steps=60)
     assert two["registered"] == full[0].num_reg_images() - 2 and "check_psnr" not in two
+
+
+def test_similar_pairs_are_the_photos_that_share_features():
+    """The pairs the sfm stage matches in a large capture (``similar_pairs``): photos whose features are noisy copies
+    of each other's score far above unrelated ones (one block of 3 photos per place, 4 places), symmetric."""
+    from nerfpipe.plugins.sfm import similarity_scores
+
+    rng = np.random.default_rng(0)
+    places = [rng.integers(0, 256, size=(200, 128)).astype(np.float32) for _ in range(4)]
+    photos = [np.clip(p + rng.normal(0, 12, size=p.shape), 0, 255) for p in places for _ in range(3)]
+    scores = similarity_scores(photos)
+    assert scores.shape == (12, 12) and np.allclose(scores, scores.T) and (np.diag(scores) == -1).all()
+    same = np.kron(np.eye(4), np.ones((3, 3))).astype(bool) & ~np.eye(12, dtype=bool)
+    assert scores[same].min() > 100 and scores[~same & ~np.eye(12, dtype=bool)].max() < 10
+    for i in range(12):  # each photo's two best are its own place's
+        assert set(np.argsort(-scores[i])[:2]) == set(np.flatnonzero(same[i]))
+
+
+def test_sfm_stage_matching_similar_pairs_only(photos, tmp_path):
+    """Above ``exhaustive_max_photos`` each photo is matched with its most similar ones only: the four Sceaux photos
+    with 2 neighbours each still register."""
+    pipe = Pipeline(["sfm"], {"sfm": {**FAST, "exhaustive_max_photos": 2, "match_neighbours": 2, "strict_min_inliers": 0}})
+    pipe.run(photos, tmp_path)
+    summary = json.loads((tmp_path / "sfm" / "sfm.json").read_text())
+    assert summary["num_registered"] == len(PHOTOS)
+    pairs = (tmp_path / "sfm.work" / "pairs.txt").read_text().split("\n")
+    assert 3 <= len([p for p in pairs if p]) < 6  # not all 6 pairs

@@ -56,6 +56,13 @@ class SfmConfig:
     """SIFT features per image."""
     num_threads: int = 2
     """CPU threads for extraction, matching and mapping (-1: all)."""
+    exhaustive_max_photos: int = 40
+    """Photos up to which every pair is matched; above, each photo is matched with its ``match_neighbours`` most
+    similar ones only (:func:`similar_pairs`). instant-ngp's fox (67 photos at 1,024 px): every pair (2,211) took
+    61.8 s of matching, the 644 pairs of 15 neighbours 20.8 s (plus 4 s to choose them), and registered all 67 photos
+    within 0.03 degrees (median) of the exhaustive reconstruction, 14,358 points against 15,017."""
+    match_neighbours: int = 15
+    """Most similar photos each photo is matched with above ``exhaustive_max_photos``."""
     max_centre_spread: float = 20.0
     """A registered photo whose centre lies farther from the median centre than this many times the
     median distance is dropped as a failed registration (as one with bogus intrinsics is); 0: keep all."""
@@ -271,7 +278,14 @@ def reconstruct(images: Path, work: Path, config: SfmConfig, info, time_left: "f
             bar.update(task, completed=1, description=f"features ({n} images)")
             seconds["features"], t = time.monotonic() - t, time.monotonic()
             task = bar.add_task("matching", total=1)
-            pycolmap.match_exhaustive(db, matching_options=match, device=cpu)
+            if n > config.exhaustive_max_photos and config.match_neighbours < n - 1:
+                pair_list = work / "pairs.txt"
+                pair_list.write_text("".join(f"{a} {b}\n" for a, b in similar_pairs(db, config.match_neighbours)))
+                pairing = pycolmap.ImportedPairingOptions()
+                pairing.match_list_path = str(pair_list)
+                pycolmap.match_image_pairs(db, matching_options=match, pairing_options=pairing, device=cpu)
+            else:
+                pycolmap.match_exhaustive(db, matching_options=match, device=cpu)
             bar.update(task, completed=1)
         else:
             shutil.copyfile(matches_from, db)
@@ -285,6 +299,57 @@ def reconstruct(images: Path, work: Path, config: SfmConfig, info, time_left: "f
     if not models:
         raise NerfpipeError("structure from motion registered no images (too few matches between the photos)", images)
     return max(models.values(), key=lambda r: r.num_reg_images()), seconds
+
+
+SIMILARITY_FEATURES = 512
+"""Features per photo (COLMAP's first, the largest) that :func:`similar_pairs` matches between every pair."""
+
+
+def similar_pairs(database: Path, neighbours: int) -> "list[tuple[str, str]]":
+    """Pairs of image names (as the database holds them) to match: each photo with the ``neighbours`` photos that
+    most of its :data:`SIMILARITY_FEATURES` first features match (:func:`similarity_scores`)."""
+    import numpy as np
+
+    pycolmap = require("pycolmap", "colmap")
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        images = db.read_all_images()
+        descriptors = [np.asarray(db.read_descriptors(im.image_id).data)[:SIMILARITY_FEATURES] for im in images]
+    scores = similarity_scores(descriptors)
+    pairs = set()
+    for i, row in enumerate(scores):
+        for j in np.argsort(-row, kind="stable")[:neighbours]:
+            if j != i:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return [(images[a].name, images[b].name) for a, b in sorted(pairs)]
+
+
+def similarity_scores(descriptors: "list[object]", ratio: float = 0.8) -> "object":
+    """``[n, n]`` symmetric counts of feature matches between photos (``descriptors``: one ``[k, d]`` array per photo,
+    SIFT's): a feature of one photo matches its nearest in the other where that is nearer than ``ratio`` times the
+    second nearest (Lowe's test), on L2-normalised descriptors; the diagonal is -1."""
+    import numpy as np
+    import torch
+
+    n, k = len(descriptors), max((len(d) for d in descriptors), default=0)
+    dim = next((d.shape[1] for d in descriptors if len(d)), 128)
+    table = torch.zeros(n, k, dim)
+    valid = torch.zeros(n, k, dtype=torch.bool)
+    for i, d in enumerate(descriptors):
+        if len(d):
+            v = torch.as_tensor(np.asarray(d, dtype=np.float32))
+            table[i, : len(v)] = v / v.norm(dim=1, keepdim=True).clamp(min=1e-12)
+            valid[i, : len(v)] = True
+    counts = torch.zeros(n, n)
+    if k >= 2:
+        for i in range(n):
+            for j in range(0, n, 64):  # [k, 64, k] similarities at a time (64 MB at k = 512)
+                m = min(64, n - j)
+                sims = (table[i] @ table[j : j + m].reshape(m * k, dim).T).reshape(k, m, k).masked_fill(~valid[None, j : j + m], -2.0)
+                dist = (2.0 - 2.0 * sims.topk(2, dim=-1).values).clamp(min=0.0).sqrt()
+                counts[i, j : j + m] = ((dist[..., 0] < ratio * dist[..., 1]) & valid[i][:, None]).sum(0).float()
+    counts = counts + counts.T
+    counts.fill_diagonal_(-1.0)
+    return counts.numpy()
 
 
 def drop_weak_pairs(database: Path, min_inliers: int) -> int:
