@@ -130,6 +130,25 @@ def test_chain_runs_in_order_and_resumes(tmp_path):
     assert calls == ["b", "c"] and (tmp_path / "c.txt").read_text() == "8"
 
 
+def test_each_stage_sees_whether_only_light_stages_follow(tmp_path):
+    """The render stage spends most of the time left only where nothing but light stages (export, report) follows."""
+    seen = {}
+
+    def probe(name: str, light: bool = False) -> StageSpec:
+        def run(config: ToyConfig, ctx: StageContext) -> dict:
+            seen[name] = ctx.rest_is_light()
+            return {}
+
+        return StageSpec(name, f"probe {name}", ToyConfig, run, light=light)
+
+    registry = {"a": probe("a"), "b": probe("b"), "w": probe("w", light=True), "z": probe("z", light=True)}
+    Pipeline(["a", "b", "w", "z"], registry=registry).run(None, tmp_path / "1")
+    assert seen == {"a": False, "b": True, "w": True, "z": True}
+    Pipeline(["b", "w", "a"], registry=registry).run(None, tmp_path / "2")
+    assert seen["b"] is False and seen["w"] is False and seen["a"] is True
+    assert stages()["export"].light and stages()["report"].light and not stages()["mesh"].light
+
+
 def test_failed_stage_leaves_no_marker_and_no_artifact(tmp_path):
     calls = []
     with pytest.raises(RuntimeError, match="b failed half-way"):

@@ -94,6 +94,9 @@ class StageSpec:
     stage of the chain before running any, so a missing one never costs the earlier stages' work."""
     shows: "tuple[Any, ...]" = ()
     """What the stage shows in report.html (:class:`nerfpipe.pipeline.report_items.Shown`: file, kind, title)."""
+    light: bool = False
+    """The stage takes about no time (writing files from what is in memory: ``export``, ``report``): a stage followed
+    only by light ones may spend more of the time left (:meth:`StageContext.rest_is_light`)."""
     collective: bool = False
     """Under torchrun, every process runs the stage together (``train``: data-parallel); the others run
     on rank 0 alone. A collective stage writes only from rank 0 (:class:`nerfpipe.training.distributed.World`)."""
@@ -119,6 +122,12 @@ class StageContext:
     """Config of each known stage, for :attr:`StageSpec.restore`."""
     started: float = field(default_factory=time.monotonic)
     log: logging.Logger = log
+    following: "tuple[StageSpec, ...]" = ()
+    """The stages of the chain after the running one (set by :meth:`Pipeline.run` before each stage)."""
+
+    def rest_is_light(self) -> bool:
+        """Whether only :attr:`StageSpec.light` stages follow the running one (then it may spend most of the time left)."""
+        return all(spec.light for spec in self.following)
 
     def path(self, artifact: str) -> Path:
         """Where an artifact lives in the run folder."""
@@ -399,7 +408,8 @@ class Pipeline:
 
     def _run_chain(self, ctx: StageContext, resume: bool, on_stage) -> "list[StageRecord]":
         records, running, last = [], not resume, 0.0
-        for spec in self.specs:
+        for k, spec in enumerate(self.specs):
+            ctx.following = tuple(self.specs[k + 1 :])
             config = self.configs[spec.name]
             done = None if running else is_done(ctx, spec, config, after=last)
             if done is not None:

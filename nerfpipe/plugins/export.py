@@ -154,6 +154,7 @@ STAGE = StageSpec(
     description="cameras for the ecosystem: nerfstudio transforms.json and an Open3D camera trajectory",
     config=ExportConfig,
     run=run,
+    light=True,
     requires=("scene",),
     produces=(TRANSFORMS, TRAJECTORY),
     dependencies=(("open3d", "mesh"),),

@@ -9,6 +9,7 @@ with the plan actually used; ``test*`` for the test path). The rendered views ar
 memory (``views``).
 """
 
+import dataclasses
 import json
 
 from nerfpipe.outputs.artifacts import SEQUENCE_DEPENDENCIES
@@ -33,6 +34,8 @@ def run(config: RenderConfig, ctx: StageContext) -> "dict[str, object]":
     train_config = ctx.path("train") / "config.json"
     train_config = json.loads(train_config.read_text()) if train_config.is_file() else None
     bg = background(config, train_config, scene)
+    if ctx.rest_is_light():  # the last stage that computes: most of what is left
+        config = dataclasses.replace(config, budget_share=config.last_share)
     views, info = render_sequence(model, scene, config, bg, ctx.device, ctx.time_left(), camera_file)
     write_render(ctx.path(RENDER_DIR), views, config, info, camera_file.fps if camera_file is not None else None)
     ctx.log.info("render: %d frames of %dx%d -> %s/", len(views), info["width"], info["height"], RENDER_DIR)

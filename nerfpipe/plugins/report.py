@@ -22,5 +22,6 @@ STAGE = StageSpec(
     description="report.html: scene, check, metrics, curves, orbit/depth GIFs, mesh, timings in one file",
     config=ReportConfig,
     run=run,
+    light=True,
     produces=(REPORT_FILE,),
 )
