@@ -536,7 +536,7 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     rec, images, record = _choose_by_size(photos, work, config, first, time_left, log)
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
-        rec, images, record["strict"] = strict_check(len(photos), work, config, (rec, images), left, log)
+        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log)
     return rec, images, record
 
 
@@ -552,7 +552,7 @@ STRICT_MIN_LEFT_OUT = 3
 on a 2-core CPU; one or two weakly attached photos are left to the reconstruction as it is)."""
 
 
-def strict_check(num_photos: int, work: Path, config: SfmConfig, chosen, time_left: "float | None", log) -> "tuple[object, Path, dict]":
+def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the first reconstruction's verified matches in
     ``work`` mapped again without the photo pairs of fewer than ``strict_min_inliers``) where that registers a proper
     subset of its photos and a short fit on it renders photographs registered in both, left out of both fits, at least
@@ -568,7 +568,7 @@ def strict_check(num_photos: int, work: Path, config: SfmConfig, chosen, time_le
     shutil.rmtree(strict_work, ignore_errors=True)
     strict_work.mkdir(parents=True)
     try:
-        strict, _ = reconstruct(work / "grouped", strict_work, config, range(num_photos), time_left,
+        strict, _ = reconstruct(work / "grouped", strict_work, config, photos, time_left,
                                 matches_from=work / "database.db", min_inliers=config.strict_min_inliers)  # fmt: skip
     except NerfpipeError:
         return rec, images, {"registered": 0}
@@ -591,9 +591,9 @@ def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, v
     on each (:func:`photometric_check`, held-out photographs registered in both); ``kept`` is True where the subset's
     renders them at least :data:`STRICT_MARGIN` dB better. Returns what :func:`strict_check` records."""
     (rec, images), (other, other_images) = full, subset
-    names = {Path(img.name).name for img in rec.images.values() if img.has_pose}
-    subset_names = {Path(img.name).name for img in other.images.values() if img.has_pose}
-    record = {"registered": len(subset_names), **rotation_agreement(model_rotations(other), model_rotations(rec))}
+    rotations, subset_rotations = model_rotations(rec), model_rotations(other)
+    names, subset_names = set(rotations), set(subset_rotations)
+    record = {"registered": len(subset_names), **rotation_agreement(subset_rotations, rotations)}
     if not subset_names < names or len(subset_names) <= CHECK_VIEWS + 2 or len(names - subset_names) < STRICT_MIN_LEFT_OUT:
         return record  # the same photos, others, too few to fit, or too few left out to be a folded block
     folders = []
