@@ -97,7 +97,16 @@ class SfmConfig:
     """Photos above which no further reconstruction is made (larger captures constrain their poses better, and
     each reconstruction costs more)."""
     check_steps: int = 100
-    """Training steps of each reconstruction's fit in :func:`photometric_check`."""
+    """Training steps of each reconstruction's fit in :func:`photometric_check` where reconstructions at two image sizes
+    disagree."""
+    strict_check_steps: int = 400
+    """Training steps of each fit in :func:`subset_check` (of :data:`STRICT_CHECK_RAYS` rays each). A fit on the subset's
+    fewer photos converges sooner, so a short check favours it whether or not the other photos fit: on two 23-photo
+    cuts of colmap_mouse, a fold left out by the strict mapping (11 of 20 photos right) and a right reconstruction of
+    19 against 10 of its photos, the subset's held-out PSNR minus the full one's was +0.11 / +0.73 dB after 100 steps
+    of 4,096 rays (the fold missed, the right photos lost), and with 2,048 rays -0.42 / +1.21 after 200, +0.01 / +0.61
+    after 300, **+0.83 / -0.45 after 400**, +1.14 / -0.30 after 500 and +1.57 / -0.44 after 700 (session 31): the
+    fold's fit gets worse with the steps, the right one's better."""
     strict_min_inliers: int = 60
     """Verified matches a photo pair needs in the strict reconstruction (COLMAP's default: 15), mapped again from the
     first reconstruction's matches for captures of at most ``candidate_max_photos``: where a few wrong but consistent
@@ -477,11 +486,11 @@ CHECK_MAX_SIZE = 200
 """Longest side of the check's renders."""
 
 
-def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[float]":
+def photometric_check(folders: "list[Path]", steps: int, work: Path, rays_per_step: "int | None" = None) -> "list[float]":
     """Held-out PSNR of a short ``fast`` fit (``steps`` steps) on each reconstruction (COLMAP folders of the same
     photos), scored on the same :data:`CHECK_VIEWS` photographs registered in all of them, left out of every fit:
     poses that fold part of a capture cannot be rendered consistently from the others' views. NaN for every one
-    when they share no more than :data:`CHECK_VIEWS` photos."""
+    when they share no more than :data:`CHECK_VIEWS` photos. ``rays_per_step``: the trainer's default where None."""
     import dataclasses
 
     import numpy as np
@@ -505,7 +514,7 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path) -> "list[fl
         train = np.array([i for i, n in enumerate(scene_names) if n not in held], dtype=np.int64)
         scene = dataclasses.replace(scene, splits={"train": train, "val": val, "test": np.zeros(0, dtype=np.int64)})
         # iters unbounded: the schedules of a run of the usual length, whose first steps these are
-        cfg = TrainerConfig(iters=10**9, rays_per_step=None, eval_every=0, video_frames=0, checkpoint_every=0, eval_max_size=CHECK_MAX_SIZE,
+        cfg = TrainerConfig(iters=10**9, rays_per_step=rays_per_step, eval_every=0, video_frames=0, checkpoint_every=0, eval_max_size=CHECK_MAX_SIZE,
                             eval_supersample=1)
         trainer = Trainer(cfg, scene, "fast", FastConfig(), work / f"check{k}")
         trainer.model.train()
@@ -542,19 +551,28 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
 
 STRICT_MARGIN = 0.4
 """dB by which the strict reconstruction's fit must render the held-out photographs better for its photos alone to be
-kept (:func:`strict_check`). Measured on two 23-photo cuts of colmap_mouse: where the capture folds, +0.70, +0.45,
-+0.73 and +0.62 dB in four runs; where it is right, +0.15 and +0.39 (the latter would have dropped 13 right photos; that
-run's reconstructions at two sizes agreed, which now skips the check): a thin separation."""
+kept (:func:`strict_check`). Measured on 23-photo cuts of colmap_mouse after 100 steps of 4,096 rays (session 30):
+where the capture folds, +0.70, +0.45, +0.73 and +0.62 dB in four runs; where it is right, +0.15 and +0.39: a thin
+separation, and in session 31 a fold at +0.11 and a right reconstruction at +0.73. Since then the fits are longer
+(:attr:`SfmConfig.strict_check_steps`): +0.83 against -0.45 on those two."""
+
+
+STRICT_CHECK_RAYS = 2048
+"""Rays per step of :func:`subset_check`'s fits (0.6x the seconds per step of 4,096 on these cuts; see
+:attr:`SfmConfig.strict_check_steps`)."""
+
+STRICT_FIT_SECONDS = 18.0
+"""What one of :func:`subset_check`'s fits takes on a 2-core CPU (15-20 s for the cuts' 400 steps), for the budget."""
 
 
 STRICT_MIN_LEFT_OUT = 3
-"""Photos the strict reconstruction must leave out for :func:`subset_check` to test them (its two fits take about 30 s
+"""Photos the strict reconstruction must leave out for :func:`subset_check` to test them (its two fits take about 35 s
 on a 2-core CPU; one or two weakly attached photos are left to the reconstruction as it is)."""
 
 
 def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log) -> "tuple[object, Path, dict]":
-    """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the first reconstruction's verified matches in
-    ``work`` mapped again without the photo pairs of fewer than ``strict_min_inliers``) where that registers a proper
+    """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the chosen reconstruction's own verified
+    matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than ``strict_min_inliers``) where that registers a proper
     subset of its photos and a short fit on it renders photographs registered in both, left out of both fits, at least
     :data:`STRICT_MARGIN` dB better: the other photos are attached by matches that do not fit them. Called only where no
     reconstruction at another image size corroborates the chosen one. 23 photos of
@@ -562,26 +580,27 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     COLMAP's model of all 56): the strict one registers 11, all right, and renders the held-out photos 20.86 against
     20.13 dB. Returns the one kept, its images folder and what was decided."""
     rec, images = chosen
-    if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * CHECK_SECONDS:
+    if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * STRICT_FIT_SECONDS:
         return rec, images, {"skipped": "too little time left"}
+    source = images.parent  # the chosen reconstruction's own work folder (its image size's matches and photos)
     strict_work = work / "strict"
     shutil.rmtree(strict_work, ignore_errors=True)
     strict_work.mkdir(parents=True)
     try:
-        strict, _ = reconstruct(work / "grouped", strict_work, config, photos, time_left,
-                                matches_from=work / "database.db", min_inliers=config.strict_min_inliers)  # fmt: skip
+        strict, _ = reconstruct(source / "grouped", strict_work, config, photos, time_left,
+                                matches_from=source / "database.db", min_inliers=config.strict_min_inliers)  # fmt: skip
     except NerfpipeError:
         return rec, images, {"registered": 0}
     flatten_names(strict)
     drop_failed_registrations(strict, config.max_centre_spread)
-    record = subset_check((rec, images), (strict, work / "images"), strict_work, config.check_steps, config.undistort, config.verbose)
+    record = subset_check((rec, images), (strict, images), strict_work, config.strict_check_steps, config.undistort, config.verbose)
     if not record.get("kept"):
         return rec, images, record
     registered = record["registered"]
     log.warning("sfm: %d of the %d registered photos do not fit the others (a %d-step fit without them renders held-out photos "
                 "%.2f against %.2f dB): kept the %d that strong matches tie together", rec.num_reg_images() - registered,
-                rec.num_reg_images(), config.check_steps, record["check_psnr"][1], record["check_psnr"][0], registered)  # fmt: skip
-    return strict, work / "images", record
+                rec.num_reg_images(), config.strict_check_steps, record["check_psnr"][1], record["check_psnr"][0], registered)  # fmt: skip
+    return strict, images, record
 
 
 def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, verbose: bool = False) -> dict:
@@ -602,7 +621,7 @@ def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, v
         shutil.rmtree(folder, ignore_errors=True)
         _write_result(model, model_images, work / f"model_{name}", folder, undistort, {}, verbose)
         folders.append(folder)
-    psnr = photometric_check(folders, steps, work)
+    psnr = photometric_check(folders, steps, work, rays_per_step=STRICT_CHECK_RAYS)
     record["check_psnr"] = [round(p, 2) for p in psnr]
     record["kept"] = bool(psnr[1] >= psnr[0] + STRICT_MARGIN)
     return record
