@@ -317,3 +317,18 @@ def test_sfm_stage_matching_similar_pairs_only(photos, tmp_path):
     assert summary["num_registered"] == len(PHOTOS)
     pairs = (tmp_path / "sfm.work" / "pairs.txt").read_text().split("\n")
     assert 3 <= len([p for p in pairs if p]) < 6  # not all 6 pairs
+
+
+def test_colmaps_own_warnings_are_quiet_unless_verbose():
+    """COLMAP's mapper warnings ("Discarding reconstruction due to insufficient size") stay out of a run's console;
+    ``--sfm.verbose`` shows them; the level is restored afterwards."""
+    import pycolmap
+
+    from nerfpipe.plugins.sfm import _colmap_log
+
+    before = pycolmap.logging.minloglevel
+    with _colmap_log(pycolmap, verbose=False):
+        assert pycolmap.logging.minloglevel >= 2
+    assert pycolmap.logging.minloglevel == before
+    with _colmap_log(pycolmap, verbose=True):
+        assert pycolmap.logging.minloglevel == before

@@ -261,9 +261,11 @@ def _progress():
 
 @contextlib.contextmanager
 def _colmap_log(pycolmap, verbose: bool):
-    """Silence COLMAP's INFO lines unless ``verbose`` (restored afterwards)."""
+    """Silence COLMAP's INFO and WARNING lines unless ``verbose`` (restored afterwards): its warnings are for COLMAP's
+    own mapper (a 23-photo folder printed 13-24 lines of "Discarding reconstruction due to insufficient size" among the
+    progress bars); what they amount to, the stage says itself (registered photos, dropped registrations, checks)."""
     old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = old if verbose else max(old, 1)
+    pycolmap.logging.minloglevel = old if verbose else max(old, 2)
     try:
         yield
     finally:
