@@ -242,15 +242,20 @@ def _subset_pair(scene_path, root: Path, fold: bool):
     return [(pycolmap.Reconstruction(str(f / "sparse" / "0")), f / "images") for f in (full, subset)]
 
 
+MINIATURE_MARGIN = 0.3
+"""The margin of these miniature checks (60 steps on 16 small photos): they separate by less than the stage's 400-step
+fits (``STRICT_MARGIN``): the fold +0.44 dB, right poses -2.46 (session 31; after 120 steps +0.57 / -2.87)."""
+
+
 def test_the_strict_reconstruction_is_kept_where_the_photos_it_leaves_out_are_folded(scene_path, tmp_path):
     """The sfm stage's last check (``strict_check``): a reconstruction whose extra photos sit 80 degrees off renders
     the held-out photographs worse than the photos that strong matches tie together alone, so those are kept."""
-    from nerfpipe.plugins.sfm import STRICT_MARGIN, subset_check
+    from nerfpipe.plugins.sfm import subset_check
 
     full, subset = _subset_pair(scene_path, tmp_path, fold=True)
-    record = subset_check(full, subset, tmp_path / "work", steps=60)
+    record = subset_check(full, subset, tmp_path / "work", steps=60, margin=MINIATURE_MARGIN)
     assert record["registered"] == subset[0].num_reg_images() == record["agree"] >= 6  # the subset's poses are the right half's
-    assert record["kept"] and record["check_psnr"][1] >= record["check_psnr"][0] + STRICT_MARGIN
+    assert record["kept"] and record["check_psnr"][1] >= record["check_psnr"][0] + MINIATURE_MARGIN
 
 
 def test_the_strict_reconstruction_is_not_kept_where_the_other_photos_fit(scene_path, tmp_path):
@@ -258,7 +263,7 @@ def test_the_strict_reconstruction_is_not_kept_where_the_other_photos_fit(scene_
     from nerfpipe.plugins.sfm import subset_check
 
     full, subset = _subset_pair(scene_path, tmp_path, fold=False)
-    record = subset_check(full, subset, tmp_path / "work", steps=60)
+    record = subset_check(full, subset, tmp_path / "work", steps=60, margin=MINIATURE_MARGIN)
     assert not record["kept"], record
     same = subset_check(full, full, tmp_path / "same", steps=60)  # not a proper subset: nothing to check
     assert "check_psnr" not in same and "kept" not in same
