@@ -173,6 +173,7 @@ def test_rotation_agreement_sees_a_folded_part_of_a_capture_through_a_global_rot
     world = Rotation.random(random_state=rng).as_matrix()
     same = {n: r @ world.T for n, r in ref.items()}
     assert rotation_agreement(same, ref) == {"shared": 12, "agree": 12, "median_error": pytest.approx(0.0, abs=1e-4)}
+    assert rotation_agreement({}, ref) == {"shared": 0, "agree": 0, "median_error": None}  # written to sfm.json: valid JSON
     fold = Rotation.from_rotvec(np.radians(80.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
     folded = {n: (r @ fold if i >= 7 else r) @ world.T for i, (n, r) in enumerate(sorted(ref.items()))}
     noisy = {n: Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=3) / 3).as_matrix() @ r for n, r in folded.items()}

@@ -445,12 +445,12 @@ def rotation_agreement(rotations: "dict[str, object]", reference: "dict[str, obj
     the world: for each shared name the alignment that makes that camera exact, keeping the one under which most cameras
     agree within ``tolerance`` degrees (a reconstruction that folds part of a capture keeps the rest exact, and a
     least-squares alignment would blur which part is wrong). Returns the shared count, the agreeing count and the
-    median error in degrees under that alignment."""
+    median error in degrees under that alignment (None where they share no photo)."""
     import numpy as np
 
     names = sorted(set(rotations) & set(reference))
     if not names:
-        return {"shared": 0, "agree": 0, "median_error": float("nan")}
+        return {"shared": 0, "agree": 0, "median_error": None}  # None, not NaN: sfm.json stays JSON
     ours = np.stack([np.asarray(rotations[n], dtype=float) for n in names])
     ref = np.stack([np.asarray(reference[n], dtype=float) for n in names])
     best = None
