@@ -315,3 +315,15 @@ def test_a_budget_not_an_iteration_count_ends_a_budgeted_run(tiny_scene, tmp_pat
     for t in (free, budgeted):
         t.step = DEFAULT_ITERS
     assert free.done() and not budgeted.done()
+
+
+def test_held_out_fall_reads_the_intermediate_validations_of_the_same_views():
+    """A held-out view whose PSNR falls while training (folded poses) is measured from its best to the last; the
+    final evaluation's row (more views) and a rise do not count (``held_out_fall``)."""
+    from nerfpipe.training.evaluation import HELD_OUT_FALL_DB, held_out_fall
+
+    fold = [[100, 6.0, 20.84, 0.8, 1], [500, 30.0, 17.63, 0.7, 1], [800, 50.0, 16.54, 0.7, 1], [890, 55.0, 20.41, 0.8, 3]]
+    assert held_out_fall(fold) == pytest.approx(20.84 - 16.54) and held_out_fall(fold) >= HELD_OUT_FALL_DB
+    right = [[100, 11.0, 22.54, 0.87, 1], [600, 73.0, 26.02, 0.93, 1], [915, 129.0, 24.74, 0.93, 7]]
+    assert held_out_fall(right) == 0.0
+    assert held_out_fall(right[:1]) == 0.0 and held_out_fall([]) == 0.0

@@ -117,6 +117,10 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
     from nerfpipe.viewer.training import train_watched
 
     metrics = train_watched(trainer, config.view, config.view_port)
+    if metrics.get("held_out_fall_db", 0.0) >= evaluation.HELD_OUT_FALL_DB:
+        ctx.log.warning("train: the held-out view's PSNR fell %.1f dB from its best while training: the photographs' poses "
+                        "probably disagree (a fold in the reconstruction; see sfm/sfm.json and mesh/mesh_views.png)",
+                        metrics["held_out_fall_db"])
     return {"model": trainer.model.eval(), "metrics": metrics}
 
 
