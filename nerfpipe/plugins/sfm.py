@@ -578,8 +578,9 @@ on a 2-core CPU; one or two weakly attached photos are left to the reconstructio
 
 def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the chosen reconstruction's own verified
-    matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than ``strict_min_inliers``) where that registers a proper
-    subset of its photos and a short fit on it renders photographs registered in both, left out of both fits, at least
+    matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than
+    ``strict_min_inliers``) where that registers a proper subset of its photos and a fit on it renders photographs
+    registered in both, left out of both fits, at least
     :data:`STRICT_MARGIN` dB better: the other photos are attached by matches that do not fit them. Called only where no
     reconstruction at another image size corroborates the chosen one. 23 photos of
     colmap_mouse whose 1,024 px and 640 px reconstructions both fold (11 of 23 and 11 of 18 photos within 5 degrees of

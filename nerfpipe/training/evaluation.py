@@ -388,10 +388,11 @@ figures 19.97 and 21.42): not every fold shows (session 31)."""
 def held_out_fall(rows: "list[list]") -> float:
     """dB by which the intermediate validations (``history["val"]`` rows, those of the first row's view count: the same
     views at the same size) fell from their best to their last; 0 for fewer than two."""
-    same = [r for r in rows if r[4] == rows[0][4]] if rows else []
+    views, value = VAL_COLUMNS.index("views"), VAL_COLUMNS.index("val_psnr")
+    same = [r for r in rows if r[views] == rows[0][views]] if rows else []
     if len(same) < 2:
         return 0.0
-    psnr = [float(r[2]) for r in same]
+    psnr = [float(r[value]) for r in same]
     return max(psnr) - psnr[-1]
 
 
