@@ -239,6 +239,42 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     assert main(["eval", str(pipeline_layout), "--supersample", "0"]) == 2  # one line naming the parameter
     assert "supersample" in capsys.readouterr().err
 
+    import imageio.v3 as iio
+
+    from nerfpipe.training.evaluation import ground_truth
+
+    assert main(["eval", str(pipeline_layout), "--pictures", "--json"]) == 0  # photograph | render | error, each view
+    pictures = json.loads(capsys.readouterr().out)["pictures"]
+    assert pictures["files"] == [f"view_{v['view']:04d}.png" for v in result["per_view"]]
+    scene = load(tiny_npz)
+    for view, name in zip(result["per_view"], pictures["files"]):
+        strip = iio.imread(pipeline_layout / "train" / "eval" / name)
+        assert strip.shape == (SIZE, 3 * SIZE, 3)
+        gt = ground_truth(scene, view["view"], torch.zeros(3), (SIZE, SIZE))  # the tiny scene's evaluation background: black
+        assert np.abs(strip[:, :SIZE].astype(int) - np.round(gt.numpy() * 255).astype(int)).max() <= 1
+        mse = np.mean((strip[:, SIZE : 2 * SIZE] / 255.0 - gt.numpy()) ** 2)  # the middle third is the render that was scored
+        assert -10 * np.log10(mse) == pytest.approx(view["psnr"], abs=0.05)
+
+
+def test_error_strip_maps_the_pixel_error_on_one_fixed_scale():
+    from matplotlib import colormaps
+
+    from nerfpipe.outputs.colormap import ERROR_MAX, error_strip, pixel_error
+
+    gt = torch.rand(6, 5, 3, generator=torch.Generator().manual_seed(0))
+    pred = gt.clone()
+    pred[:2] = (gt[:2] + ERROR_MAX).clamp(max=1.0)  # rows 0-1 off (by up to ERROR_MAX per channel), the rest exact
+    err = pixel_error(pred, gt)
+    assert float((err**2).mean()) == pytest.approx(float(((pred - gt) ** 2).mean()))  # its squared mean is the MSE
+    strip = error_strip(pred, gt)
+    assert strip.shape == (6, 15, 3) and strip.dtype == np.uint8
+    turbo = colormaps["turbo"]
+    zero = np.round(np.asarray(turbo(0.0)[:3]) * 255).astype(int)
+    assert (strip[2:, 10:].reshape(-1, 3) == zero).all()  # exact pixels: the scale's 0
+    expected = np.round(np.asarray(turbo(min(float(err[1, 3]) / ERROR_MAX, 1.0))[:3]) * 255).astype(int)
+    assert np.abs(strip[1, 13].astype(int) - expected).max() <= 1
+    assert not (strip[:2, 10:].reshape(-1, 3) == zero).all(axis=1).any()  # every wrong pixel off the 0 colour
+
 
 def test_cli_train_then_render(tiny_npz, tmp_path, capsys):
     run = tmp_path / "run"

@@ -14,6 +14,7 @@ def eval_run(
     chunk: int = 4096,
     device: str = "auto",
     json: bool = False,
+    pictures: bool = False,
 ) -> int:
     """Score a trained run on its held-out views: every view at full resolution by default, PSNR and SSIM,
     and LPIPS (AlexNet) when the lpips package and its weights are on this machine (nothing is downloaded).
@@ -29,6 +30,8 @@ def eval_run(
         chunk: rays per forward pass (bounds memory).
         device: torch device (auto: CUDA when present, else CPU; printed first, or named in the JSON).
         json: print the result as JSON only.
+        pictures: also write each view's photograph, render and error map side by side to RUN_DIR/eval/ (one colour
+            scale for every view: where a held-out view goes wrong, at a glance).
     """
     import json as _json
     import time
@@ -53,9 +56,16 @@ def eval_run(
     sizes = eval_sizes(scene, idx, scale, max_size)
     bg = background(RenderConfig(), cfg, scene)  # the run's evaluation background
     lpips, lpips_note = lpips_scorer(device)
+    on_view, pictures_dir = None, folder / "eval"
+    if pictures:
+        from nerfpipe.outputs.colormap import error_strip
+        from nerfpipe.training.evaluation import save_snapshot
+
+        def on_view(i, view, gt):
+            save_snapshot(pictures_dir / f"view_{i:04d}.png", error_strip(view.rgb, gt))
     start = time.perf_counter()
     scores = score_views(model, scene, idx, sizes, bg, device, chunk, lpips=lpips, progress=not json, fit_appearance=True,
-                         supersample=supersample)
+                         supersample=supersample, on_view=on_view)
     result = {
         "split": eval_split(scene), "views": len(idx), "sizes": sorted({f"{w}x{h}" for w, h in sizes}), "supersample": supersample,
         "psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]), "psnr_colour_fitted": _mean(scores["fitted_psnr"]),
@@ -64,6 +74,10 @@ def eval_run(
         "per_view": [{"view": i, "psnr": p, "ssim": s} for i, p, s in zip(idx, scores["psnr"], scores["ssim"])],
         "seconds": time.perf_counter() - start, "device": device,
     }
+    if pictures:
+        from nerfpipe.outputs.colormap import error_text
+
+        result["pictures"] = {"folder": str(pictures_dir), "files": [f"view_{i:04d}.png" for i in idx], "mapping": error_text()}
     write_json(folder / "eval.json", result)
     if json:
         print(_json.dumps(result, indent=2))
@@ -72,6 +86,8 @@ def eval_run(
         fitted = "" if result["psnr_appearance_fitted"] is None else f" ({result['psnr_appearance_fitted']:.2f} dB on right halves, appearance fitted on left halves)"
         print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
               f"PSNR {result['psnr']:.2f} dB{fitted}, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
+        if pictures:
+            print(f"error maps ({result['pictures']['mapping']}): {pictures_dir}")
     return 0
 
 

@@ -1,7 +1,8 @@
-"""Depth as colour, with the mapping stated: turbo from near (blue) to far (red) over a fixed range.
+"""Depth and error as colour, with the mapping stated: turbo from near (blue) to far (red) over a fixed range.
 
 One range serves every frame of a sequence (so colours are comparable across frames); pixels whose
-accumulated opacity is below ``min_acc`` (background) are drawn black.
+accumulated opacity is below ``min_acc`` (background) are drawn black. Errors of a render against its
+photograph are drawn on one fixed scale (:data:`ERROR_MAX`), so maps compare across views and runs.
 """
 
 import numpy as np
@@ -34,3 +35,26 @@ def colorize_depth(depth: Float[Tensor, "H W"], acc: Float[Tensor, "H W"], lo: f
 
 def mapping_text(lo: float, hi: float, min_acc: float = 0.5) -> str:
     return f"turbo colormap of surface depth (depth/acc) from {lo:.3f} (blue) to {hi:.3f} (red) world units; acc < {min_acc} black"
+
+
+ERROR_MAX = 0.25
+"""Root mean square error over a pixel's channels (colours in [0, 1]) drawn red in :func:`error_strip`; 0 is blue."""
+
+
+def pixel_error(pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W"]:
+    """Root mean square over the channels of ``pred - gt``: the mean of its square over the pixels is the image's MSE."""
+    return ((pred.float() - gt.float().to(pred.device)) ** 2).mean(dim=-1).sqrt()
+
+
+def error_strip(pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"]) -> np.ndarray:
+    """uint8 ``[H, 3 W, 3]``: the photograph, the render and the turbo map of :func:`pixel_error` from 0 to
+    :data:`ERROR_MAX` (clipped), side by side."""
+    cm = require("matplotlib", "plot")
+    t = (pixel_error(pred, gt) / ERROR_MAX).clamp(0.0, 1.0).cpu().numpy()
+    heat = cm.colormaps["turbo"](t)[..., :3]
+    row = np.concatenate([gt.float().cpu().clamp(0, 1).numpy(), pred.float().cpu().clamp(0, 1).numpy(), heat], axis=1)
+    return (row * 255 + 0.5).astype(np.uint8)
+
+
+def error_text() -> str:
+    return f"photograph | render | turbo colormap of the per-pixel RMS colour error from 0 (blue) to {ERROR_MAX} (red)"

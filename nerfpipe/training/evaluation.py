@@ -7,6 +7,7 @@ composited on the evaluation background.
 """
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -15,7 +16,7 @@ import torch.nn.functional as F
 from nerfpipe.data.background import background_colors, composite_pixels
 from nerfpipe.data.rays import camera_rays
 from nerfpipe.functional.metrics import psnr_from_mse
-from nerfpipe.outputs.render import FramePlan, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, supersample_factor, to_uint8
+from nerfpipe.outputs.render import FramePlan, RenderedView, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, supersample_factor, to_uint8
 from nerfpipe.training.checkpoint import CHECKPOINT
 from nerfpipe.training.runs import write_json
 from nerfpipe.util.errors import require
@@ -131,7 +132,8 @@ def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int
 
 
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
-                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False, supersample: int = 1) -> dict:
+                deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False, supersample: int = 1,
+                on_view: "Callable[[int, RenderedView, torch.Tensor], None] | None" = None) -> dict:
     """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;
     with a ``deadline`` (``time.monotonic()``), no view is begun after it but the first.
 
@@ -140,7 +142,8 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
     ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr. With
     ``fit_appearance``, models with per-image appearance also give ``appearance_fitted_psnr``
     (:func:`appearance_fitted_psnr`; its time is not in ``seconds``). ``supersample``: rays per pixel side at most
-    for views smaller than their photographs (:func:`view_supersample`).
+    for views smaller than their photographs (:func:`view_supersample`). ``on_view(view index, render, ground truth)``
+    is called with each scored view (e.g. to write its error map).
     """
     out = {"psnr": [], "ssim": [], "fitted_psnr": [], "appearance_fitted_psnr": [], "lpips": [], "seconds": 0.0, "pixels": 0, "first": None}
     cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
@@ -163,6 +166,8 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         out["psnr"].append(p)
         out["ssim"].append(s)
         out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
+        if on_view is not None:
+            on_view(idx[i], view, gt)
         if fit_appearance:
             fitted = appearance_fitted_psnr(model, camera_rays(cam, 0), gt, background, chunk)
             if fitted is not None:
