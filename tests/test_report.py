@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from nerfpipe.outputs.colormap import ERROR_MAX
 from nerfpipe.pipeline.report import REPORT_FILE, ReportConfig, fmt, write_report
 from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline, stages
 
@@ -22,6 +23,7 @@ IMAGES = {
     "render/orbit.gif": "orbit (colour)", "render/depth_orbit.gif": "orbit (depth)",
     "bench/psnr_vs_seconds.png": "val PSNR against training seconds", "mesh/mesh_views.png": "mesh from four views",
     "train/cameras.png": "training cameras, rays and samples",
+    "train/held_out.png": f"held-out views: photograph, render, error (turbo, 0 to {ERROR_MAX} RMS)",
 }  # fmt: skip
 METRICS = {"val_psnr": 23.4567, "val_ssim": 0.8123, "train_seconds": 61.5, "iterations": 812, "model": "fast",
            "model_params": 1234567, "model_mb": 4.71, "samples_per_ray": 37.5, "video": {"frames": 8}}  # fmt: skip
@@ -55,7 +57,7 @@ def _write_images(run: Path, big_cameras: bool) -> None:
     frames = [np.roll(_pattern(48, 40, 0), 6 * k, axis=1) for k in range(8)]
     write_gif(frames, run / "render" / "orbit.gif", 10.0)
     write_gif([f[..., ::-1] for f in frames], run / "render" / "depth_orbit.gif", 10.0)
-    for i, rel in enumerate(["train/progress.png", "bench/psnr_vs_seconds.png", "mesh/mesh_views.png"]):
+    for i, rel in enumerate(["train/progress.png", "bench/psnr_vs_seconds.png", "mesh/mesh_views.png", "train/held_out.png"]):
         (run / rel).parent.mkdir(parents=True, exist_ok=True)
         iio.imwrite(run / rel, _pattern(120 + 10 * i, 60, i + 1))
     rng = np.random.default_rng(0)  # noise does not compress: a PNG of several hundred kB

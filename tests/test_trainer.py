@@ -220,6 +220,19 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     metrics = json.loads((run / "metrics.json").read_text())
     assert result["views"] == 2 and result["sizes"] == [f"{SIZE}x{SIZE}"] and result == json.loads((run / "eval.json").read_text())
     assert result["psnr"] == pytest.approx(metrics["val_psnr"], abs=1e-5)  # the trainer's protocol without a budget: the same scores
+    import imageio.v3 as iio
+
+    from nerfpipe.training.evaluation import ground_truth
+
+    held_out = iio.imread(run / "held_out.png")  # the final evaluation's views, one per row: photograph | render | error
+    assert held_out.shape == (result["views"] * SIZE, 3 * SIZE, 3)
+    scene = load(tiny_npz)
+    for row, view in enumerate(result["per_view"]):
+        strip = held_out[row * SIZE : (row + 1) * SIZE]
+        gt = ground_truth(scene, view["view"], torch.zeros(3), (SIZE, SIZE))  # the tiny scene's evaluation background: black
+        assert np.abs(strip[:, :SIZE].astype(int) - np.round(gt.numpy() * 255).astype(int)).max() <= 1
+        mse = np.mean((strip[:, SIZE : 2 * SIZE] / 255.0 - gt.numpy()) ** 2)  # the middle third is the render that was scored
+        assert -10 * np.log10(mse) == pytest.approx(view["psnr"], abs=0.05)
     assert result["lpips"] is None or 0 <= result["lpips"] <= 1
 
     pipeline_layout = tmp_path / "piperun"  # nerfpipe run's layout: the trained model in train/
@@ -239,14 +252,9 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     assert main(["eval", str(pipeline_layout), "--supersample", "0"]) == 2  # one line naming the parameter
     assert "supersample" in capsys.readouterr().err
 
-    import imageio.v3 as iio
-
-    from nerfpipe.training.evaluation import ground_truth
-
     assert main(["eval", str(pipeline_layout), "--pictures", "--json"]) == 0  # photograph | render | error, each view
     pictures = json.loads(capsys.readouterr().out)["pictures"]
     assert pictures["files"] == [f"view_{v['view']:04d}.png" for v in result["per_view"]]
-    scene = load(tiny_npz)
     for view, name in zip(result["per_view"], pictures["files"]):
         strip = iio.imread(pipeline_layout / "train" / "eval" / name)
         assert strip.shape == (SIZE, 3 * SIZE, 3)

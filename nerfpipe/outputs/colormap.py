@@ -58,3 +58,9 @@ def error_strip(pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"]) -> np.
 
 def error_text() -> str:
     return f"photograph | render | turbo colormap of the per-pixel RMS colour error from 0 (blue) to {ERROR_MAX} (red)"
+
+
+def stack_rows(rows: "list[np.ndarray]") -> np.ndarray:
+    """uint8 images ``[h_i, w_i, 3]`` one under another, each padded with black on the right to the widest."""
+    width = max(r.shape[1] for r in rows)
+    return np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows], axis=0)

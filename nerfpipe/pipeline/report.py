@@ -306,7 +306,8 @@ def training_section(page: Page, metrics: "dict | None") -> str:
         body = kv_columns(flat)
     curves = figure(page, page.item("psnr_curves"), "train (per batch) and validation PSNR against iterations and seconds", "wide")
     progress = figure(page, page.item("progress"), cls="wide")
-    return section("training", "Training", f"<h3>Metrics</h3>{body}{curves}{progress}")
+    held_out = figure(page, page.item("held_out"), "where the held-out views go wrong", "wide")
+    return section("training", "Training", f"<h3>Metrics</h3>{body}{curves}{progress}{held_out}")
 
 
 def _link(page: Page, item: Shown) -> str:

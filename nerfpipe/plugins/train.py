@@ -1,7 +1,8 @@
 """Stage ``train``: fit a registered model (``nerfpipe.models`` group) with :class:`nerfpipe.training.trainer.Trainer`.
 
 The trainer's run folder is ``RUN_DIR/train`` (``config.json``, ``checkpoint.safetensors``, ``metrics.json``,
-``psnr.png``, ``progress.png``, ``cameras.png``). Videos are the ``render`` stage's job, so the
+``psnr.png``, ``progress.png``, ``cameras.png``, ``held_out.png``: the final evaluation's views, photograph, render and
+error map). Videos are the ``render`` stage's job, so the
 trainer writes none here.
 
 Resume: when the stage runs again (interrupted, or with more ``iters`` or a new time budget) and
@@ -20,6 +21,7 @@ import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from nerfpipe.outputs.colormap import ERROR_MAX
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec
 from nerfpipe.training import checkpoint, evaluation
@@ -145,6 +147,7 @@ STAGE = StageSpec(
     shows=tuple(Shown(role, kind, (f"{TRAIN_DIR}/{name}",), title) for role, kind, name, title in (
         ("metrics", "table", "metrics.json", "training metrics"), ("history", "table", "history.json", "validation history"),
         ("psnr_curves", "image", "psnr.png", "PSNR curves"), ("progress", "image", "progress.png", "validation view during training"),
-        ("cameras", "image", "cameras.png", "training cameras, rays and samples"), ("train_colour", "image", "orbit.gif", "orbit (colour)"),
+        ("cameras", "image", "cameras.png", "training cameras, rays and samples"),
+        ("held_out", "image", "held_out.png", f"held-out views: photograph, render, error (turbo, 0 to {ERROR_MAX} RMS)"), ("train_colour", "image", "orbit.gif", "orbit (colour)"),
         ("train_depth", "image", "depth_orbit.gif", "orbit (depth)"), ("train_video", "video", "orbit.mp4", "orbit video (MP4)"))),
 )

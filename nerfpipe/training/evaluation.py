@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from nerfpipe.data.background import background_colors, composite_pixels
 from nerfpipe.data.rays import camera_rays
 from nerfpipe.functional.metrics import psnr_from_mse
+from nerfpipe.outputs.colormap import error_strip, stack_rows
 from nerfpipe.outputs.render import FramePlan, RenderedView, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, supersample_factor, to_uint8
 from nerfpipe.training.checkpoint import CHECKPOINT
 from nerfpipe.training.runs import write_json
@@ -212,18 +213,28 @@ def lpips_scorer(device: str):
     return lambda a, b: float(net(a.permute(2, 0, 1)[None] * 2 - 1, b.permute(2, 0, 1)[None].to(a) * 2 - 1)), None
 
 
+HELD_OUT_PICTURE = "held_out.png"
+"""The final evaluation's views, one per row: photograph | render | per-pixel error
+(:func:`~nerfpipe.outputs.colormap.error_strip`, one scale for every view)."""
+
+
 def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False,
              supersample: "int | None" = None) -> "tuple[float, float]":
     """Mean (PSNR, SSIM) over ``num_views`` val views (0: all) at ``scale`` of the configured size (those begun
     before ``deadline``), with ``supersample`` rays per pixel side at most (None: ``eval_supersample``); logs it, keeps
     a snapshot of view 0 and the time one rendered ray took (``trainer.seconds_per_pixel``). The ``final`` one also fits
-    per-image appearance to the left halves (``trainer.last_appearance_fitted_psnr``, None without)."""
+    per-image appearance to the left halves (``trainer.last_appearance_fitted_psnr``, None without) and writes
+    :data:`HELD_OUT_PICTURE`: each scored view's photograph, render and error map, one view per row."""
     scene, cfg = trainer.scene, trainer.cfg
     idx = eval_views(scene, num_views)
     bg = background_colors(trainer.eval_bg, 1)[0]
+    strips: "list" = []
+    on_view = (lambda i, view, gt: strips.append(error_strip(view.rgb, gt))) if final and cfg.write_outputs else None
     scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True,
                          deadline=deadline, fit_appearance=final,
-                         supersample=cfg.eval_supersample if supersample is None else supersample)
+                         supersample=cfg.eval_supersample if supersample is None else supersample, on_view=on_view)
+    if strips:
+        save_snapshot(trainer.out / HELD_OUT_PICTURE, stack_rows(strips))
     fitted = scores["appearance_fitted_psnr"]
     trainer.last_appearance_fitted_psnr = _mean(fitted) if fitted else None
     idx = idx[: len(scores["psnr"])]
