@@ -264,6 +264,25 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
         assert -10 * np.log10(mse) == pytest.approx(view["psnr"], abs=0.05)
 
 
+def test_held_out_picture_keeps_a_few_views_at_a_bounded_width(tiny_npz, tmp_path, monkeypatch):
+    import imageio.v3 as iio
+
+    from nerfpipe.training import evaluation
+
+    monkeypatch.setattr(evaluation, "HELD_OUT_ROWS", 1)
+    monkeypatch.setattr(evaluation, "HELD_OUT_WIDTH", 3 * SIZE // 2)  # rows twice too wide: 2x2 means
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32",
+                 "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0"]) == 0
+    held_out = iio.imread(run / "held_out.png")
+    assert held_out.shape == (SIZE // 2, 3 * SIZE // 2, 3)  # one view of two
+    view = json.loads((run / "history.json").read_text())["val"][-1]
+    assert view["views"] == 2
+    gt = evaluation.ground_truth(load(tiny_npz), evaluation.eval_views(load(tiny_npz))[0], torch.zeros(3), (SIZE, SIZE))
+    means = F.avg_pool2d(gt.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0).numpy()
+    assert np.abs(held_out[:, : SIZE // 2].astype(int) - np.round(means * 255).astype(int)).max() <= 1
+
+
 def test_error_strip_maps_the_pixel_error_on_one_fixed_scale():
     from matplotlib import colormaps
 

@@ -216,6 +216,11 @@ def lpips_scorer(device: str):
 HELD_OUT_PICTURE = "held_out.png"
 """The final evaluation's views, one per row: photograph | render | per-pixel error
 (:func:`~nerfpipe.outputs.colormap.error_strip`, one scale for every view)."""
+HELD_OUT_ROWS = 8
+"""Views in :data:`HELD_OUT_PICTURE` at most (the first the final evaluation scores)."""
+HELD_OUT_WIDTH = 1200
+"""Width of a row of :data:`HELD_OUT_PICTURE` at most: larger views are shown averaged over square blocks of pixels
+(the error map of the averaged render: a 13-view 800² evaluation would otherwise be a PNG of tens of MB)."""
 
 
 def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | None" = None, final: bool = False,
@@ -229,7 +234,15 @@ def validate(trainer, num_views: int, scale: float = 1.0, deadline: "float | Non
     idx = eval_views(scene, num_views)
     bg = background_colors(trainer.eval_bg, 1)[0]
     strips: "list" = []
-    on_view = (lambda i, view, gt: strips.append(error_strip(view.rgb, gt))) if final and cfg.write_outputs else None
+
+    def keep_strip(i, view, gt) -> None:  # a few views, each at most HELD_OUT_WIDTH wide: a picture, not the data
+        if len(strips) < HELD_OUT_ROWS:
+            k = max(1, -(-3 * view.rgb.shape[1] // HELD_OUT_WIDTH))
+            small = [x if k == 1 else F.avg_pool2d(x.permute(2, 0, 1)[None].float(), k, ceil_mode=True)[0].permute(1, 2, 0)
+                     for x in (view.rgb, gt.to(view.rgb.device))]
+            strips.append(error_strip(*small))
+
+    on_view = keep_strip if final and cfg.write_outputs else None
     scores = score_views(trainer.model, scene, idx, _eval_sizes(scene, idx, cfg, scale), bg, cfg.device, cfg.chunk, keep_first=True,
                          deadline=deadline, fit_appearance=final,
                          supersample=cfg.eval_supersample if supersample is None else supersample, on_view=on_view)
