@@ -227,12 +227,15 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     held_out = iio.imread(run / "held_out.png")  # the final evaluation's views, one per row: photograph | render | error
     assert held_out.shape == (result["views"] * SIZE, 3 * SIZE, 3)
     scene = load(tiny_npz)
-    for row, view in enumerate(result["per_view"]):
-        strip = held_out[row * SIZE : (row + 1) * SIZE]
+
+    def check_strip(strip, view):
         gt = ground_truth(scene, view["view"], torch.zeros(3), (SIZE, SIZE))  # the tiny scene's evaluation background: black
         assert np.abs(strip[:, :SIZE].astype(int) - np.round(gt.numpy() * 255).astype(int)).max() <= 1
         mse = np.mean((strip[:, SIZE : 2 * SIZE] / 255.0 - gt.numpy()) ** 2)  # the middle third is the render that was scored
         assert -10 * np.log10(mse) == pytest.approx(view["psnr"], abs=0.05)
+
+    for row, view in enumerate(result["per_view"]):
+        check_strip(held_out[row * SIZE : (row + 1) * SIZE], view)
     assert result["lpips"] is None or 0 <= result["lpips"] <= 1
 
     pipeline_layout = tmp_path / "piperun"  # nerfpipe run's layout: the trained model in train/
@@ -258,10 +261,7 @@ def test_eval_command_scores_every_view_at_full_size(tiny_npz, tmp_path, capsys)
     for view, name in zip(result["per_view"], pictures["files"]):
         strip = iio.imread(pipeline_layout / "train" / "eval" / name)
         assert strip.shape == (SIZE, 3 * SIZE, 3)
-        gt = ground_truth(scene, view["view"], torch.zeros(3), (SIZE, SIZE))  # the tiny scene's evaluation background: black
-        assert np.abs(strip[:, :SIZE].astype(int) - np.round(gt.numpy() * 255).astype(int)).max() <= 1
-        mse = np.mean((strip[:, SIZE : 2 * SIZE] / 255.0 - gt.numpy()) ** 2)  # the middle third is the render that was scored
-        assert -10 * np.log10(mse) == pytest.approx(view["psnr"], abs=0.05)
+        check_strip(strip, view)
 
 
 def test_held_out_picture_keeps_a_few_views_at_a_bounded_width(tiny_npz, tmp_path, monkeypatch):
@@ -278,7 +278,8 @@ def test_held_out_picture_keeps_a_few_views_at_a_bounded_width(tiny_npz, tmp_pat
     assert held_out.shape == (SIZE // 2, 3 * SIZE // 2, 3)  # one view of two
     view = json.loads((run / "history.json").read_text())["val"][-1]
     assert view["views"] == 2
-    gt = evaluation.ground_truth(load(tiny_npz), evaluation.eval_views(load(tiny_npz))[0], torch.zeros(3), (SIZE, SIZE))
+    scene = load(tiny_npz)
+    gt = evaluation.ground_truth(scene, evaluation.eval_views(scene)[0], torch.zeros(3), (SIZE, SIZE))
     means = F.avg_pool2d(gt.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0).numpy()
     assert np.abs(held_out[:, : SIZE // 2].astype(int) - np.round(means * 255).astype(int)).max() <= 1
 

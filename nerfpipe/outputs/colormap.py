@@ -25,12 +25,15 @@ def depth_range(depths: "list[Tensor]", accs: "list[Tensor]", min_acc: float = 0
 
 def colorize_depth(depth: Float[Tensor, "H W"], acc: Float[Tensor, "H W"], lo: float, hi: float, min_acc: float = 0.5) -> np.ndarray:
     """uint8 ``[H, W, 3]``: turbo colour of ``(depth/acc - lo) / (hi - lo)``; background black."""
-    cm = require("matplotlib", "plot")
     surface = (depth / acc.clamp(min=1e-6)).cpu().numpy()
-    t = np.clip((surface - lo) / (hi - lo), 0.0, 1.0)
-    rgb = cm.colormaps["turbo"](t)[..., :3]
+    rgb = _turbo(np.clip((surface - lo) / (hi - lo), 0.0, 1.0))
     rgb[acc.cpu().numpy() < min_acc] = 0.0
     return (rgb * 255 + 0.5).astype(np.uint8)
+
+
+def _turbo(t: np.ndarray) -> np.ndarray:
+    """Turbo colours (float RGB in [0, 1], ``[*t.shape, 3]``) of ``t`` in [0, 1]."""
+    return require("matplotlib", "plot").colormaps["turbo"](t)[..., :3]
 
 
 def mapping_text(lo: float, hi: float, min_acc: float = 0.5) -> str:
@@ -49,9 +52,7 @@ def pixel_error(pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"]) -> Flo
 def error_strip(pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"]) -> np.ndarray:
     """uint8 ``[H, 3 W, 3]``: the photograph, the render and the turbo map of :func:`pixel_error` from 0 to
     :data:`ERROR_MAX` (clipped), side by side."""
-    cm = require("matplotlib", "plot")
-    t = (pixel_error(pred, gt) / ERROR_MAX).clamp(0.0, 1.0).cpu().numpy()
-    heat = cm.colormaps["turbo"](t)[..., :3]
+    heat = _turbo((pixel_error(pred, gt) / ERROR_MAX).clamp(0.0, 1.0).cpu().numpy())
     row = np.concatenate([gt.float().cpu().clamp(0, 1).numpy(), pred.float().cpu().clamp(0, 1).numpy(), heat], axis=1)
     return (row * 255 + 0.5).astype(np.uint8)
 
