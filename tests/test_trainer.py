@@ -284,6 +284,32 @@ def test_held_out_picture_keeps_a_few_views_at_a_bounded_width(tiny_npz, tmp_pat
     assert np.abs(held_out[:, : SIZE // 2].astype(int) - np.round(means * 255).astype(int)).max() <= 1
 
 
+def test_pictures_show_the_render_the_appearance_fitted_figure_scores(tiny_npz, tmp_path, monkeypatch, capsys):
+    """For a model that fits each held-out view's appearance (photo collections), ``eval --pictures`` and
+    ``held_out.png`` show the render in that appearance, whose right half the appearance-fitted figure scores."""
+    import imageio.v3 as iio
+
+    from nerfpipe.training import evaluation
+
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_npz), "--model", "vanilla", "--out", str(run), "--iters", "2", "--rays-per-step", "32",
+                 "--model.num-samples", "8", "--video-frames", "0", "--eval-every", "0"]) == 0
+    capsys.readouterr()
+    shade = torch.tensor([0.25, 0.5, 0.75])  # a stand-in for the fitted render: one colour, easy to find
+
+    def fitted(model, rays, gt, background, chunk):
+        return 17.0, shade.expand(*rays.shape, 3).clone()
+
+    monkeypatch.setattr(evaluation, "appearance_fitted_view", fitted)
+    assert main(["eval", str(run), "--pictures", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["psnr_appearance_fitted"] == 17.0 and result["pictures"]["render"].startswith("appearance fitted")
+    strip = iio.imread(run / "eval" / result["pictures"]["files"][0])
+    middle = strip[:, SIZE : 2 * SIZE].reshape(-1, 3).astype(int)
+    assert np.abs(middle - np.round(shade.numpy() * 255).astype(int)).max() <= 1
+    assert result["psnr"] < 40.0  # the mean render is scored as before, not the stand-in
+
+
 def test_error_strip_maps_the_pixel_error_on_one_fixed_scale():
     from matplotlib import colormaps
 

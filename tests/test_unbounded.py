@@ -453,7 +453,7 @@ def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own
     varies left to right, the other's the opposite way): the image codes learn both; evaluation shows the
     mean, and fitting a held-out view's code to some of its pixels (NeRF-W's protocol) renders the rest in
     its own light, leaving the trained model unchanged."""
-    from nerfpipe.training.evaluation import appearance_fitted_psnr
+    from nerfpipe.training.evaluation import appearance_fitted_view
 
     torch.manual_seed(0)
     model = _model(num_images=2, background_field=False, appearance_fit_steps=80)
@@ -491,8 +491,14 @@ def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own
     plain = _model(num_images=2, background_field=False, appearance=False)  # nothing to fit: no figure
     view = RayBundle(origins=held_out.origins.reshape(32, 32, 3), directions=held_out.directions.reshape(32, 32, 3),
                      cam_idx=held_out.cam_idx.reshape(32, 32), z_scale=held_out.z_scale.reshape(32, 32))
-    assert appearance_fitted_psnr(plain, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) is None
-    assert appearance_fitted_psnr(model, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) > 25.0
+    assert appearance_fitted_view(plain, view, target.reshape(32, 32, 3), torch.zeros(3), 4096) is None
+    psnr, render = appearance_fitted_view(model, view, target.reshape(32, 32, 3), torch.zeros(3), 4096)
+    assert psnr > 25.0 and render.shape == (32, 32, 3)
+    with torch.no_grad():  # the picture: the left half, which the fit saw, is rendered in the fitted appearance too
+        mean_view = model.get_outputs(view, torch.zeros(32, 32, 3)).rgb.clamp(0, 1)
+    image = target.reshape(32, 32, 3)
+    left, mean_left = (float(((x[:, :16] - image[:, :16]) ** 2).mean()) for x in (render, mean_view))
+    assert left < 0.2 * mean_left and left < 2e-3, (left, mean_left)
 
 
 def test_pose_corrections_rotate_rays_about_their_camera_and_stay_zero_mean():

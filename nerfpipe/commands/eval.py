@@ -31,7 +31,8 @@ def eval_run(
         device: torch device (auto: CUDA when present, else CPU; printed first, or named in the JSON).
         json: print the result as JSON only.
         pictures: also write each view's photograph, render and error map side by side to RUN_DIR/eval/ (one colour
-            scale for every view: where a held-out view goes wrong, at a glance).
+            scale for every view: where a held-out view goes wrong, at a glance); for photo collections the render
+            takes the appearance fitted to the view's left half, as the appearance-fitted figure scores it.
     """
     import json as _json
     import time
@@ -77,7 +78,8 @@ def eval_run(
     if pictures:
         from nerfpipe.outputs.colormap import error_text
 
-        result["pictures"] = {"folder": str(pictures_dir), "files": [f"view_{i:04d}.png" for i in idx], "mapping": error_text()}
+        render = "appearance fitted on its left half (right half scored)" if scores["appearance_fitted_psnr"] else "mean appearance"
+        result["pictures"] = {"folder": str(pictures_dir), "files": [f"view_{i:04d}.png" for i in idx], "mapping": error_text(), "render": render}
     write_json(folder / "eval.json", result)
     if json:
         print(_json.dumps(result, indent=2))
@@ -87,7 +89,7 @@ def eval_run(
         print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
               f"PSNR {result['psnr']:.2f} dB{fitted}, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
         if pictures:
-            print(f"error maps ({result['pictures']['mapping']}): {pictures_dir}")
+            print(f"error maps ({result['pictures']['mapping']}; render: {result['pictures']['render']}): {pictures_dir}")
     return 0
 
 

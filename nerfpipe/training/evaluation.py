@@ -8,6 +8,7 @@ composited on the evaluation background.
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -117,19 +118,21 @@ def eval_views(scene, num_views: int = 0) -> "list[int]":
     return idx[:num_views] if num_views else idx
 
 
-def appearance_fitted_psnr(model, rays, gt: torch.Tensor, background, chunk: int) -> "float | None":
-    """PSNR on the right half of a view rendered with the appearance the model fits to its left half
+def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: int) -> "tuple[float, torch.Tensor] | None":
+    """A held-out view rendered with the appearance the model fits to its left half
     (:meth:`~nerfpipe.models.base.Model.fitted_appearance`: NeRF-W's protocol for held-out views of photo
-    collections); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
-    half = rays.shape[1] // 2
+    collections): the PSNR of its right half and the whole ``[H, W, 3]`` render (left half included, for the
+    pictures); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
+    height, width = rays.shape
+    half = width // 2
     gt = gt.to(rays.origins)
     background = background.to(gt)
     with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background) as fitted:
         if not fitted:
             return None
         with torch.no_grad():
-            rgb = render_rays(model, rays[:, half:].reshape(-1), background, chunk)[0].clamp(0, 1)
-    return psnr_from_mse(float(((rgb - gt[:, half:].reshape(-1, 3)) ** 2).mean()))
+            rgb = render_rays(model, rays.reshape(-1), background, chunk)[0].clamp(0, 1).view(height, width, 3)
+    return psnr_from_mse(float(((rgb[:, half:] - gt[:, half:]) ** 2).mean())), rgb
 
 
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
@@ -142,7 +145,7 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
     (the rays rendered, for the time one ray takes), with ``keep_first`` the first rendered view as ``first``, and with an
     ``lpips`` scorer (:func:`lpips_scorer`) the per-view ``lpips``; ``progress`` shows a bar on stderr. With
     ``fit_appearance``, models with per-image appearance also give ``appearance_fitted_psnr``
-    (:func:`appearance_fitted_psnr`; its time is not in ``seconds``). ``supersample``: rays per pixel side at most
+    (:func:`appearance_fitted_view`; its time is not in ``seconds``). ``supersample``: rays per pixel side at most
     for views smaller than their photographs (:func:`view_supersample`). ``on_view(view index, render, ground truth)``
     is called with each scored view (e.g. to write its error map).
     """
@@ -167,12 +170,11 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         out["psnr"].append(p)
         out["ssim"].append(s)
         out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
-        if on_view is not None:
-            on_view(idx[i], view, gt)
-        if fit_appearance:
-            fitted = appearance_fitted_psnr(model, camera_rays(cam, 0), gt, background, chunk)
-            if fitted is not None:
-                out["appearance_fitted_psnr"].append(fitted)
+        fitted = appearance_fitted_view(model, camera_rays(cam, 0), gt, background, chunk) if fit_appearance else None
+        if fitted is not None:
+            out["appearance_fitted_psnr"].append(fitted[0])
+        if on_view is not None:  # what the view is scored on: for photo collections, with its fitted appearance
+            on_view(idx[i], view if fitted is None else replace(view, rgb=fitted[1]), gt)
         if lpips is not None:
             with torch.no_grad():
                 out["lpips"].append(lpips(view.rgb, gt))
@@ -301,6 +303,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
         half = max(1, pw // 2)
         rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
         fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
+        fit_seconds += render if fit_seconds else 0.0  # and the view rendered with it, one ray per pixel
     supersample, per_view = 1, render + fit_seconds  # the most rays per pixel with which every view fits at full size, else one
     for k in range(view_supersample(first, 0, (w, h), cfg.eval_supersample), 1, -1):
         if len(idx) * (render * k**2 + fit_seconds) <= allowed - (time.perf_counter() - start):
