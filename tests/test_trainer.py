@@ -297,7 +297,7 @@ def test_pictures_show_the_render_the_appearance_fitted_figure_scores(tiny_npz, 
     capsys.readouterr()
     shade = torch.tensor([0.25, 0.5, 0.75])  # a stand-in for the fitted render: one colour, easy to find
 
-    def fitted(model, rays, gt, background, chunk):
+    def fitted(model, rays, gt, background, chunk, whole=True):
         return 17.0, shade.expand(*rays.shape, 3).clone()
 
     monkeypatch.setattr(evaluation, "appearance_fitted_view", fitted)

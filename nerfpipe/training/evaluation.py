@@ -118,21 +118,23 @@ def eval_views(scene, num_views: int = 0) -> "list[int]":
     return idx[:num_views] if num_views else idx
 
 
-def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: int) -> "tuple[float, torch.Tensor] | None":
+def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: int, whole: bool = True) -> "tuple[float, torch.Tensor] | None":
     """A held-out view rendered with the appearance the model fits to its left half
     (:meth:`~nerfpipe.models.base.Model.fitted_appearance`: NeRF-W's protocol for held-out views of photo
-    collections): the PSNR of its right half and the whole ``[H, W, 3]`` render (left half included, for the
-    pictures); None for models without per-image appearance. ``rays``: the view's ``[H, W]`` rays."""
+    collections): the PSNR of its right half and the render, ``[H, W, 3]`` with ``whole`` (the left half included, for
+    the pictures), else its right half alone; None for models without per-image appearance. ``rays``: the view's
+    ``[H, W]`` rays."""
     height, width = rays.shape
     half = width // 2
     gt = gt.to(rays.origins)
     background = background.to(gt)
+    shown = rays if whole else rays[:, half:]
     with model.fitted_appearance(rays[:, :half].reshape(-1), gt[:, :half].reshape(-1, 3), background) as fitted:
         if not fitted:
             return None
         with torch.no_grad():
-            rgb = render_rays(model, rays.reshape(-1), background, chunk)[0].clamp(0, 1).view(height, width, 3)
-    return psnr_from_mse(float(((rgb[:, half:] - gt[:, half:]) ** 2).mean())), rgb
+            rgb = render_rays(model, shown.reshape(-1), background, chunk)[0].clamp(0, 1).view(*shown.shape, 3)
+    return psnr_from_mse(float(((rgb[:, rgb.shape[1] - (width - half):] - gt[:, half:]) ** 2).mean())), rgb
 
 
 def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
@@ -170,7 +172,7 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         out["psnr"].append(p)
         out["ssim"].append(s)
         out["fitted_psnr"].append(fitted_colour_psnr(view.rgb, gt))
-        fitted = appearance_fitted_view(model, camera_rays(cam, 0), gt, background, chunk) if fit_appearance else None
+        fitted = appearance_fitted_view(model, camera_rays(cam, 0), gt, background, chunk, whole=on_view is not None) if fit_appearance else None
         if fitted is not None:
             out["appearance_fitted_psnr"].append(fitted[0])
         if on_view is not None:  # what the view is scored on: for photo collections, with its fitted appearance
@@ -303,7 +305,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
         half = max(1, pw // 2)
         rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
         fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
-        fit_seconds += render if fit_seconds else 0.0  # and the view rendered with it, one ray per pixel
+        fit_seconds += render if fit_seconds else 0.0  # and the view rendered with it (whole for the picture), one ray per pixel
     supersample, per_view = 1, render + fit_seconds  # the most rays per pixel with which every view fits at full size, else one
     for k in range(view_supersample(first, 0, (w, h), cfg.eval_supersample), 1, -1):
         if len(idx) * (render * k**2 + fit_seconds) <= allowed - (time.perf_counter() - start):
