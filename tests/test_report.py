@@ -338,3 +338,26 @@ def test_a_declared_item_no_section_reads_goes_to_other_outputs(tmp_path):
     page_html = build_html(Page(tmp_path, items=declared(specs.values())))
     others = page_html[page_html.index('id="others"') : page_html.index('id="timings"')]
     assert "heat map" in others and "extra/heat.png" in others and "<th>holes</th><td>3</td>" in others
+
+
+def test_psnr_plot_marks_the_appearance_fitted_figure(tmp_path, monkeypatch):
+    """Photo collections: the val curves are rendered with the mean appearance, the scored figure is fitted; the plot
+    says which is which and shows the scored one."""
+    from nerfpipe.outputs import plots
+
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig))
+    history = {"train": [[1, 0.1, 9.0], [2, 0.2, 10.0]], "val": [[1, 0.1, 10.0, 0.4, 1], [2, 0.2, 11.0, 0.5, 2]]}
+    plots.plot_psnr(history, tmp_path / "psnr.png", (2, 0.2, 16.2159, 2))
+    plots.plot_psnr(history, tmp_path / "psnr.png")
+    labels = [[t.get_text() for t in fig.axes[1].get_legend().get_texts()] for fig in figs]
+    assert labels[0] == ["train (batch)", "val (1 view, mean appearance)", "val (2 views, mean appearance)",
+                         "final, appearance fitted (2 views): 16.22 dB"]
+    assert labels[1] == ["train (batch)", "val (1 view)", "val (2 views)"]
+    star = figs[0].axes[0].lines[-1]  # against iterations on the left, seconds on the right
+    assert (list(star.get_xdata()), list(star.get_ydata())) == ([2], [16.2159])
+    assert list(figs[0].axes[1].lines[-1].get_xdata()) == [0.2]
+    import matplotlib.pyplot as plt
+
+    for fig in figs:
+        plt.close(fig)

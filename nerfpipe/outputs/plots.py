@@ -26,17 +26,25 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_psnr(history: dict, path: Path) -> None:
-    """Train and val PSNR against iterations (left) and training seconds (right)."""
+def plot_psnr(history: dict, path: Path, appearance_fitted: "tuple[int, float, float, int] | None" = None) -> None:
+    """Train and val PSNR against iterations (left) and training seconds (right).
+
+    ``appearance_fitted``: ``(iteration, seconds, psnr, views)`` of the final evaluation's appearance-fitted figure, for
+    a model with per-image appearance (photo collections): drawn as a star, and the val curves, rendered with the
+    mean appearance, say so (on Sacre Coeur they sit near 11 dB and the scored figure near 16)."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     train, val = history["train"], history["val"]
+    mean = ", mean appearance" if appearance_fitted is not None else ""
     for ax, col, label in ((axes[0], 0, "iteration"), (axes[1], 1, "training seconds")):
         if train:
             ax.plot([r[col] for r in train], [r[2] for r in train], lw=0.8, alpha=0.7, label="train (batch)")
         for n in sorted({r[4] if len(r) > 4 else 0 for r in val}):  # one series per number of views
             rows = [r for r in val if (r[4] if len(r) > 4 else 0) == n]
-            ax.plot([r[col] for r in rows], [r[2] for r in rows], "o-", label=f"val ({n} views)" if n else "val")
+            ax.plot([r[col] for r in rows], [r[2] for r in rows], "o-", label=f"val ({n} view{'s' * (n != 1)}{mean})" if n else f"val{mean}")
+        if appearance_fitted is not None:
+            step, seconds, psnr, views = appearance_fitted
+            ax.plot([(step, seconds)[col]], [psnr], "*", ms=14, label=f"final, appearance fitted ({views} view{'s' * (views != 1)}): {psnr:.2f} dB")
         ax.set_xlabel(label)
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)

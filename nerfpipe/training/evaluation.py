@@ -467,7 +467,8 @@ def finish(trainer) -> dict:
         metrics["checkpoint_mb"] = checkpoint.stat().st_size / 2**20
     start = time.perf_counter()
     if cfg.write_outputs:
-        plots.plot_psnr(trainer.history, out / "psnr.png")
+        fitted = trainer.last_appearance_fitted_psnr
+        plots.plot_psnr(trainer.history, out / "psnr.png", None if fitted is None else (trainer.step, trainer.train_seconds, fitted, views))
         plots.plot_progress(sorted((out / "progress").glob("step_*.png")), out / "progress.png")
         spr = stats.get("samples_per_ray", 64)
         plots.plot_cameras(trainer.scene, trainer.sampler, out / "cameras.png", num_samples=int(spr))
