@@ -195,3 +195,66 @@ def test_refuses_to_overwrite_foreign_folders(tmp_path):
     with pytest.raises(NerfpipeError, match="without scene.json"):
         generate(tmp_path, SynthConfig(**SMALL), overwrite=True)
     assert (tmp_path / "keep.txt").exists()
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """The room scene, small: the composite object on the floor of a closed, patterned room."""
+    cfg = SynthConfig(scene="room", views=8, width=40, height=30, num_points=400, min_elevation_deg=10.0, max_elevation_deg=60.0)
+    return cfg, generate(tmp_path_factory.mktemp("room") / "room", cfg)
+
+
+def test_room_every_ray_hits_its_walls_floor_or_object(room):
+    """A closed room: no pixel without a surface; each hit of the surroundings lies on the floor, a wall or the ceiling."""
+    from nerfpipe.data.rays import camera_rays
+    from nerfpipe.data.synthetic import ROOM_FLOOR, ROOM_HALF_WIDTH, ROOM_HEIGHT, cast
+
+    cfg, result = room
+    mesh = result.mesh
+    scene = raycaster(mesh)
+    hits_object = []
+    for i in range(len(result.cameras)):
+        rays = camera_rays(result.cameras, i)
+        o, d = rays.origins.reshape(-1, 3).numpy(), rays.directions.reshape(-1, 3).numpy()
+        t, face, _ = cast(scene, o, d)
+        assert (face >= 0).all()
+        p = o + t[:, None] * d
+        far = face >= mesh.object_faces
+        on_plane = (np.abs(p[far, 2] - ROOM_FLOOR) < 1e-4) | (np.abs(p[far, 2] - ROOM_FLOOR - ROOM_HEIGHT) < 1e-4) \
+            | (np.abs(np.abs(p[far, :2]) - ROOM_HALF_WIDTH) < 1e-4).any(-1)
+        assert on_plane.all()
+        hits_object.append((~far).mean())
+    assert 0.1 < min(hits_object) and max(hits_object) < 0.9  # each view shows the object and its surroundings
+
+
+def test_room_gt_mesh_is_the_object_alone(room):
+    """gt_mesh.ply (and the mesh figures against it) hold the composite object, not the room around it."""
+    _, result = room
+    gt, obj = load_gt_mesh(result.path), composite_scene(0)
+    assert len(gt.faces) == len(obj.faces) and np.allclose(gt.bounds, obj.bounds(), atol=1e-6)
+    parts = result.mesh.object_part(), result.mesh.surroundings_part()
+    assert len(parts[0].faces) + len(parts[1].faces) == len(result.mesh.faces)
+    assert np.allclose(parts[1].vertices[parts[1].faces], result.mesh.vertices[result.mesh.faces[len(obj.faces):]])
+    record = json.loads((result.path / SCENE_FILE).read_text())
+    assert record["num_faces"] == len(obj.faces) and np.allclose(record["bbox"], obj.bounds())
+
+
+def test_room_sparse_points_on_object_and_surroundings(room):
+    """As SfM would find them: points on the object and on the floor and walls, each seen by at least three views."""
+    import pycolmap
+
+    from nerfpipe.data.synthetic import ROOM_FLOOR
+
+    _, result = room
+    rec = pycolmap.Reconstruction(str(result.path / "sparse" / "0"))
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    inside = (np.abs(xyz) <= 0.95 * 1.3).all(-1)  # the composite object's extent
+    assert inside.sum() > 100 and (~inside).sum() > 20  # 8 views: few surroundings points lie in three of them
+    assert (np.abs(xyz[~inside, 2] - ROOM_FLOOR) < 1e-4).sum() > 10  # the floor's
+    assert min(len(p.track.elements) for p in rec.points3D.values()) >= 3
+
+
+def test_room_refuses_cameras_outside_it():
+    with pytest.raises(NerfpipeError, match="inside its room"):
+        SynthConfig(scene="room")  # the default band reaches 25 degrees below the horizon: under the floor
+    SynthConfig(scene="room", min_elevation_deg=10.0, max_elevation_deg=60.0)

@@ -23,8 +23,10 @@ def synth(
     layout: Literal["colmap", "blender"] = "colmap",
     views: int = 48,
     size: str = "128x128",
-    scene: Literal["composite", "sphere"] = "composite",
+    scene: Literal["composite", "sphere", "room"] = "composite",
     seed: int = 0,
+    min_elevation: "float | None" = None,
+    max_elevation: "float | None" = None,
     save_depth: bool = False,
     overwrite: bool = False,
 ) -> int:
@@ -35,19 +37,24 @@ def synth(
         layout: ``colmap`` (images/ + sparse/0, white background) or ``blender`` (transforms_*.json, RGBA).
         views: Number of cameras, all splits together.
         size: Image size WIDTHxHEIGHT in pixels.
-        scene: ``composite`` (box + sphere + torus, patterned) or ``sphere`` (radius 0.8).
+        scene: ``composite`` (box + sphere + torus, patterned), ``sphere`` (radius 0.8) or ``room`` (the composite on
+            the floor of a patterned room: an object in its surroundings, as real captures show it).
         seed: Seed of camera azimuths, colour pattern and sparse points.
+        min_elevation: Lowest camera elevation in degrees (default: -25, or 10 in the room, above its floor).
+        max_elevation: Highest camera elevation in degrees (default: 75, or 60 in the room).
         save_depth: Also write depth/<view>.npy (distance along the ray, 0 on background).
         overwrite: Replace ``out`` if it holds a previous synthetic scene.
     """
     import os
     import time
 
-    from nerfpipe.data.synthetic import SynthConfig, generate
+    from nerfpipe.data.synthetic import ROOM_ELEVATIONS, SynthConfig, generate
 
     width, height = parse_size(size)
+    low, high = ROOM_ELEVATIONS if scene == "room" else (SynthConfig.min_elevation_deg, SynthConfig.max_elevation_deg)
     cfg = SynthConfig(
-        scene=scene, layout=layout, views=views, width=width, height=height, seed=seed, save_depth=save_depth
+        scene=scene, layout=layout, views=views, width=width, height=height, seed=seed, save_depth=save_depth,
+        min_elevation_deg=low if min_elevation is None else min_elevation, max_elevation_deg=high if max_elevation is None else max_elevation,
     )
     start = time.perf_counter()
     result = generate(out, cfg, overwrite=overwrite)

@@ -38,7 +38,7 @@ from nerfpipe.util.errors import NerfpipeError, require
 from nerfpipe.util.paths import check_output_folder
 from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
-SceneName = Literal["composite", "sphere"]
+SceneName = Literal["composite", "sphere", "room"]
 Layout = Literal["colmap", "blender"]
 
 LIGHT_DIR = (0.35, -0.45, 0.82)
@@ -50,6 +50,15 @@ BLENDER_CAMERA_ANGLE_X = 0.6911112070083618
 SPHERE_RADIUS = 0.8
 """Radius of the ``sphere`` scene (centred at the origin)."""
 COMPOSITE_SCALE = 1.3
+
+ROOM_HALF_WIDTH = 6.0
+"""The ``room`` scene's walls stand this far from the origin along x and y."""
+ROOM_HEIGHT = 5.0
+"""Floor to ceiling of the ``room`` scene; its floor carries the composite object's plinth."""
+ROOM_FLOOR = -0.7 * COMPOSITE_SCALE
+"""Height of the ``room`` scene's floor: the plinth's underside."""
+ROOM_ELEVATIONS = (10.0, 60.0)
+"""Camera elevations in degrees that ``nerfpipe synth --scene room`` uses by default (above the floor, below the ceiling)."""
 """Scale of the composite object (fills about 60 % of the default views)."""
 SCENE_FILE = "scene.json"
 MESH_FILE = "gt_mesh.ply"
@@ -66,7 +75,9 @@ class SynthConfig:
     """A synthetic scene: which object, how many views, how large, which layout."""
 
     scene: SceneName = "composite"
-    """Object: ``composite`` (box + sphere + torus, patterned) or ``sphere`` (analytic tests)."""
+    """Object: ``composite`` (box + sphere + torus, patterned), ``sphere`` (analytic tests) or ``room`` (the composite
+    standing on the patterned floor of a closed room, as a real capture shows an object in its surroundings: every
+    ray hits something; ``gt_mesh.ply`` and the mesh figures hold the object alone; cameras above the floor)."""
     layout: Layout = "colmap"
     """``colmap``: images/ + sparse/0 (white background); ``blender``: transforms_*.json + RGBA."""
     views: int = 48
@@ -103,6 +114,11 @@ class SynthConfig:
             raise NerfpipeError(f"{self.views} views of {self.width}x{self.height} exceed {MAX_PIXELS:,} pixels in all (ray casting holds them in memory)")
         if not -90 < self.min_elevation_deg <= self.max_elevation_deg < 90:
             raise NerfpipeError("elevations must satisfy -90 < min <= max < 90 degrees")
+        if self.scene == "room":
+            lowest, highest = (self.distance * math.sin(math.radians(e)) for e in (self.min_elevation_deg, self.max_elevation_deg))
+            if lowest <= ROOM_FLOOR + 0.1 or highest >= ROOM_FLOOR + ROOM_HEIGHT - 0.1 or self.distance >= ROOM_HALF_WIDTH - 0.1:
+                raise NerfpipeError(f"the room scene's cameras must stay inside its room (elevations {self.min_elevation_deg:g} to "
+                                    f"{self.max_elevation_deg:g} degrees at distance {self.distance:g}: e.g. 10 to 60 at 4)")
 
 
 @dataclass
@@ -117,6 +133,27 @@ class SynthMesh:
     face_normals: Float[np.ndarray, "num_faces 3"]
     smooth: Bool[np.ndarray, "num_faces"]
     """True: interpolate vertex normals (curved parts); False: flat face normal (box)."""
+    object_faces: "int | None" = None
+    """Faces ``[0, object_faces)`` are the object, the rest its surroundings (``gt_mesh.ply`` holds the object alone);
+    None: every face is the object."""
+
+    def object_part(self) -> "SynthMesh":
+        """The object alone (its faces and the vertices they use: the object's vertices come first)."""
+        if self.object_faces is None:
+            return self
+        faces = self.faces[: self.object_faces]
+        n = int(faces.max()) + 1
+        return SynthMesh(self.vertices[:n], faces, self.colors[:n], self.vertex_normals[:n], self.face_normals[: self.object_faces],
+                         self.smooth[: self.object_faces])
+
+    def surroundings_part(self) -> "SynthMesh | None":
+        """The surroundings alone (None without)."""
+        if self.object_faces is None:
+            return None
+        faces = self.faces[self.object_faces :]
+        n = int(faces.min())
+        return SynthMesh(self.vertices[n:], faces - n, self.colors[n:], self.vertex_normals[n:], self.face_normals[self.object_faces :],
+                         self.smooth[self.object_faces :])
 
     def bounds(self) -> Float[np.ndarray, "2 3"]:
         return np.stack([self.vertices.min(0), self.vertices.max(0)])
@@ -204,7 +241,29 @@ def sphere_scene(seed: int = 0) -> SynthMesh:
     return _merge([_part(sphere, (0.8, 0.2, 0.2), (0.9, 0.9, 0.3), 0.3, True, np.random.default_rng(seed))])
 
 
-SCENES = {"composite": composite_scene, "sphere": sphere_scene}
+def room_scene(seed: int = 0) -> SynthMesh:
+    """The composite object standing on the floor of a closed room (walls :data:`ROOM_HALF_WIDTH` from the origin,
+    :data:`ROOM_HEIGHT` high, faces inward), floor and walls patterned in their own colours and periods: what a real
+    capture of an object shows around it. The object's faces come first (:attr:`SynthMesh.object_faces`)."""
+    trimesh = require("trimesh", "mesh")
+    rng = np.random.default_rng(seed + 1)  # the surroundings' own phases; the object is composite_scene(seed)
+    obj = composite_scene(seed)
+    w, h = 2 * ROOM_HALF_WIDTH, ROOM_HEIGHT
+    room = trimesh.creation.box(extents=(w, w, h))
+    room.invert()  # normals into the room
+    v, f = trimesh.remesh.subdivide_to_size(room.vertices, room.faces, max_edge=0.12)
+    room = trimesh.Trimesh(v + [0.0, 0.0, ROOM_FLOOR + h / 2], f, process=False)
+    walls = _part(room, (0.55, 0.50, 0.42), (0.85, 0.82, 0.74), 0.9, False, rng)
+    on_floor = np.abs(walls["vertices"][:, 2] - ROOM_FLOOR) < 1e-6
+    floor = (1 - _pattern(walls["vertices"], 0.35, rng.uniform(0, 2 * math.pi, 3)))[:, None]
+    walls["colors"] = np.where(on_floor[:, None], 0.35 + 0.45 * floor * np.asarray((0.95, 0.75, 0.55)), walls["colors"])
+    parts = [{k: getattr(obj, k) for k in ("vertices", "faces", "colors", "vertex_normals", "face_normals", "smooth")}, walls]
+    mesh = _merge(parts)
+    mesh.object_faces = len(obj.faces)
+    return mesh
+
+
+SCENES = {"composite": composite_scene, "sphere": sphere_scene, "room": room_scene}
 
 
 # ---------------------------------------------------------------------------- cameras
@@ -315,13 +374,30 @@ class SparsePoints:
 def sample_points(scene, mesh: SynthMesh, cameras: Cameras, cfg: SynthConfig) -> SparsePoints:
     """Sample the surface uniformly by area; keep points seen unoccluded in ``min_track_length`` views."""
     trimesh = require("trimesh", "mesh")
-    xyz, face = trimesh.sample.sample_surface(mesh.to_trimesh(), cfg.num_points, seed=cfg.seed)
+    xyz, face = trimesh.sample.sample_surface(mesh.object_part().to_trimesh(), cfg.num_points, seed=cfg.seed)
+    if mesh.object_faces is not None:  # as many tries on what the photographs show of the far larger surroundings
+        xyz2, face2 = _seen_surroundings(scene, mesh, cameras, cfg.num_points, np.random.default_rng(cfg.seed + 1))
+        xyz, face = np.concatenate([xyz, xyz2]), np.concatenate([face, face2])
     tri = mesh.vertices[mesh.faces[face]]
     bary = trimesh.triangles.points_to_barycentric(tri, xyz)
     rgb = shade(mesh, np.asarray(face, dtype=np.int64), bary)
     visible, uv = _visibility(scene, torch.from_numpy(np.asarray(xyz, dtype=np.float64)), cameras)
     keep = visible.sum(1) >= cfg.min_track_length
     return SparsePoints(xyz=np.asarray(xyz)[keep], rgb=rgb[keep], visible=visible[keep], uv=uv[keep])
+
+
+def _seen_surroundings(scene, mesh: SynthMesh, cameras: Cameras, n: int, rng: np.random.Generator):
+    """Points of the surroundings where ``n`` random pixels of random views first hit them (as SfM finds keypoints in
+    what photographs show), with their faces."""
+    from nerfpipe.data.rays import generate_rays
+
+    cam = torch.from_numpy(rng.integers(0, len(cameras), n))
+    uv = torch.from_numpy(rng.uniform(0, 1, (n, 2))) * torch.stack([cameras.width[cam], cameras.height[cam]], -1)
+    rays = generate_rays(cameras, cam, uv)
+    o, d = rays.origins.numpy(), rays.directions.numpy()
+    t, face, _ = cast(scene, o, d)
+    keep = face >= mesh.object_faces
+    return (o + t[:, None] * d)[keep], face[keep]
 
 
 def _visibility(scene, xyz: Float[Tensor, "num_points 3"], cameras: Cameras):
@@ -439,15 +515,15 @@ def render_all(cfg: SynthConfig):
 
 
 def scene_record(cfg: SynthConfig, mesh: SynthMesh, num_points: int) -> dict:
-    bounds = mesh.bounds()
+    bounds = mesh.object_part().bounds()  # of gt_mesh.ply
     return {
         "generator": "nerfpipe synth",
         "config": asdict(cfg),
         "frame": "input frame: +z up, cameras look at the origin; OpenCV axes in COLMAP, OpenGL in transforms",
         "mesh": MESH_FILE,
         "bbox": bounds.tolist(),
-        "num_vertices": int(len(mesh.vertices)),
-        "num_faces": int(len(mesh.faces)),
+        "num_vertices": int(len(mesh.object_part().vertices)),
+        "num_faces": int(len(mesh.object_part().faces)),
         "num_points3D": num_points,
         "splits": view_splits(cfg.views),
         "light_dir": list(LIGHT_DIR),
@@ -470,7 +546,7 @@ def generate(out: "str | Path", cfg: SynthConfig, overwrite: bool = False) -> Sy
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         _write_layout(tmp, cameras, views, points, cfg)
-        mesh.to_trimesh().export(tmp / MESH_FILE)
+        mesh.object_part().to_trimesh().export(tmp / MESH_FILE)
         record = scene_record(cfg, mesh, 0 if points is None else len(points.xyz))
         (tmp / SCENE_FILE).write_text(json.dumps(record, indent=2))
         if out.exists():
