@@ -244,10 +244,13 @@ def sphere_scene(seed: int = 0) -> SynthMesh:
 def room_scene(seed: int = 0) -> SynthMesh:
     """The composite object standing on the floor of a closed room (walls :data:`ROOM_HALF_WIDTH` from the origin,
     :data:`ROOM_HEIGHT` high, faces inward), floor and walls patterned in their own colours and periods: what a real
-    capture of an object shows around it. The object's faces come first (:attr:`SynthMesh.object_faces`)."""
+    capture of an object shows around it. The object's faces come first (:attr:`SynthMesh.object_faces`), less its
+    plinth's underside, which stands on the floor: no photograph can see it, so the ground truth leaves it out."""
     trimesh = require("trimesh", "mesh")
     rng = np.random.default_rng(seed + 1)  # the surroundings' own phases; the object is composite_scene(seed)
     obj = composite_scene(seed)
+    seen = ~(np.abs(obj.vertices[obj.faces][..., 2] - ROOM_FLOOR) < 1e-9).all(-1)  # the plinth's underside lies on the floor
+    obj.faces, obj.face_normals, obj.smooth = obj.faces[seen], obj.face_normals[seen], obj.smooth[seen]
     w, h = 2 * ROOM_HALF_WIDTH, ROOM_HEIGHT
     room = trimesh.creation.box(extents=(w, w, h))
     room.invert()  # normals into the room
