@@ -159,6 +159,19 @@ def test_training_leaves_the_supersampled_final_evaluation_its_time_past_supersa
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
 
 
+def test_the_supersampled_final_evaluation_of_averaged_parameters_is_reserved_more(tiny_scene, tmp_path):
+    """The final evaluation renders the averaged parameters (the occupancy grid refreshed in full), slower per ray than
+    the validations during training: the window reserves AVERAGED_RENDER_FACTOR times more for its 2 x 2 rays."""
+    from nerfpipe.training.evaluation import AVERAGED_RENDER_FACTOR, final_eval_need
+
+    plain = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2, average=False), tiny_scene, "vanilla", MODEL, tmp_path / "a")
+    averaged = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2, average=True), tiny_scene, "vanilla", MODEL, tmp_path / "b")
+    plain.seconds_per_pixel = averaged.seconds_per_pixel = 1.0
+    assert final_eval_need(averaged) == pytest.approx(final_eval_need(plain))  # one ray per pixel: as measured
+    assert final_eval_need(averaged, supersample=True) == pytest.approx(AVERAGED_RENDER_FACTOR * final_eval_need(plain, supersample=True))
+    assert AVERAGED_RENDER_FACTOR > 1
+
+
 def test_supersample_from_defaults_to_the_plateau_where_parameters_are_averaged(tiny_scene, tmp_path):
     from nerfpipe.training.trainer import PLATEAU_STEPS
 

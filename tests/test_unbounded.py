@@ -557,7 +557,7 @@ def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_pa
 
 def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
     from nerfpipe.data.orbit import camera_arc, look_at
-    from nerfpipe.models.fast import SPARSITY_MAX_VIEWS, SPARSITY_MIN_ARC, SPARSITY_REAL
+    from nerfpipe.models.fast import SPARSITY_MIN_ARC, SPARSITY_REAL
 
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
 
@@ -574,7 +574,7 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert weight(arc=2 * math.pi) == weight(arc=SPARSITY_MIN_ARC) == SPARSITY_REAL > 0  # all round; one side of an object
     assert FastConfig(preset="small").setup(SceneInfo(**info, num_images=20, arc=2 * math.pi)).stats()["sparsity_weight"] == SPARSITY_REAL  # in metrics.json
     assert weight(arc=math.radians(63)) == 0.0  # a facade's in-box surfaces would thin
-    assert weight(arc=2 * math.pi, num_images=SPARSITY_MAX_VIEWS + 1) == 0.0  # many views hold empty space empty
+    assert weight(arc=2 * math.pi, num_images=200) == SPARSITY_REAL  # many views leave fog too (the room scene: +3.3 dB)
     assert weight(arc=2 * math.pi, unbounded=False, has_alpha=True) == 0.0
     model = _model(sparsity_weight=1.0)
     model.train()

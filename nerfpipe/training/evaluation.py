@@ -101,6 +101,13 @@ every view (:func:`final_eval_need`) needs more than :data:`FINAL_SHARE` and at 
 where it needs more, no share would score every view, and :data:`FINAL_SHARE` is left (fewer or smaller views)."""
 FINAL_MARGIN = 1.3
 """Safety factor on the final evaluation's estimated time (:func:`final_eval_need`)."""
+AVERAGED_RENDER_FACTOR = 2.0
+"""Where the parameters are averaged, the final evaluation renders their average, its occupancy grid refreshed in full,
+whose rays cost more than those of the latest validation during training: under ``nerfpipe run colmap_mouse
+--time-budget 300`` 1.6x (session 34, the final 2 x 2 rays estimated at 69.1 s by the final evaluation's probe, 43.2 s
+by the latest validation) and, with ``sparsity_weight`` 0.01, at least 2.0x: the window reserved too little for 2 x 2
+rays, and the final evaluation scored one ray per pixel (24.56 dB; 24.70 rescored with 2 x 2) and left 50 s of the
+budget unused. :func:`final_eval_need` reserves for the supersampled final evaluation this many times more."""
 PROBE = 2
 """Under a budget, the trained model's rendering speed is timed on the first view at this fraction of its side (the
 latest validation's time per ray is no guide: photos_sacre_coeur's gave its final 2 x 2 rays 24.4 s, which took
@@ -356,8 +363,8 @@ def final_eval_need(trainer, supersample: bool = False) -> "float | None":
     """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
     per pixel, or with ``supersample`` as many as the final evaluation would use (``eval_supersample`` at most, where
     views are scored smaller than their photographs), from the latest validation's time per ray, :data:`FINAL_MARGIN`
-    times over; None before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's
-    window): on colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut
+    times over (the supersampled one :data:`AVERAGED_RENDER_FACTOR` times more where the parameters are averaged); None
+    before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut
     training from 878 to 600 steps."""
     if trainer.seconds_per_pixel is None:
         return None
@@ -368,7 +375,8 @@ def final_eval_need(trainer, supersample: bool = False) -> "float | None":
         cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
         trainer.final_eval_rays = (sum(w * h for w, h in sizes),
                                    sum(w * h * view_supersample(cams, i, (w, h), cfg.eval_supersample) ** 2 for i, (w, h) in enumerate(sizes)))
-    return FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
+    factor = AVERAGED_RENDER_FACTOR if supersample and trainer.average is not None else 1.0
+    return factor * FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
 
 
 def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
