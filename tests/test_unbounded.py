@@ -575,6 +575,8 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert FastConfig(preset="small").setup(SceneInfo(**info, num_images=20, arc=2 * math.pi)).stats()["sparsity_weight"] == SPARSITY_REAL  # in metrics.json
     assert weight(arc=math.radians(63)) == 0.0  # a facade's in-box surfaces would thin
     assert weight(arc=2 * math.pi, num_images=200) == SPARSITY_REAL  # many views leave fog too (the room scene: +3.3 dB)
+    no_field = FastConfig(preset="small", background_field=False).setup(SceneInfo(**info, num_images=20, arc=2 * math.pi))
+    assert no_field.sparsity_weight == 0.0  # nothing behind the box to take the surroundings (the demo's object on white)
     assert weight(arc=2 * math.pi, unbounded=False, has_alpha=True) == 0.0
     model = _model(sparsity_weight=1.0)
     model.train()
