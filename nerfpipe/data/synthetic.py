@@ -50,6 +50,7 @@ BLENDER_CAMERA_ANGLE_X = 0.6911112070083618
 SPHERE_RADIUS = 0.8
 """Radius of the ``sphere`` scene (centred at the origin)."""
 COMPOSITE_SCALE = 1.3
+"""Scale of the composite object (fills about 60 % of the default views)."""
 
 ROOM_HALF_WIDTH = 6.0
 """The ``room`` scene's walls stand this far from the origin along x and y."""
@@ -59,7 +60,6 @@ ROOM_FLOOR = -0.7 * COMPOSITE_SCALE
 """Height of the ``room`` scene's floor: the plinth's underside."""
 ROOM_ELEVATIONS = (10.0, 60.0)
 """Camera elevations in degrees that ``nerfpipe synth --scene room`` uses by default (above the floor, below the ceiling)."""
-"""Scale of the composite object (fills about 60 % of the default views)."""
 SCENE_FILE = "scene.json"
 MESH_FILE = "gt_mesh.ply"
 MAX_VIEWS = 2000
@@ -518,15 +518,15 @@ def render_all(cfg: SynthConfig):
 
 
 def scene_record(cfg: SynthConfig, mesh: SynthMesh, num_points: int) -> dict:
-    bounds = mesh.object_part().bounds()  # of gt_mesh.ply
+    obj = mesh.object_part()  # what gt_mesh.ply holds
     return {
         "generator": "nerfpipe synth",
         "config": asdict(cfg),
         "frame": "input frame: +z up, cameras look at the origin; OpenCV axes in COLMAP, OpenGL in transforms",
         "mesh": MESH_FILE,
-        "bbox": bounds.tolist(),
-        "num_vertices": int(len(mesh.object_part().vertices)),
-        "num_faces": int(len(mesh.object_part().faces)),
+        "bbox": obj.bounds().tolist(),
+        "num_vertices": int(len(obj.vertices)),
+        "num_faces": int(len(obj.faces)),
         "num_points3D": num_points,
         "splits": view_splits(cfg.views),
         "light_dir": list(LIGHT_DIR),
