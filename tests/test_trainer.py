@@ -187,6 +187,28 @@ def test_final_evaluation_supersamples_small_views_when_every_view_fits(tiny_sce
     assert plan["supersample"] == supersample and plan["size"] == [SIZE // 2, SIZE // 2]
 
 
+def test_the_final_evaluations_probe_renders_the_planned_rays_per_pixel_after_a_warm_up(tiny_scene, tmp_path, monkeypatch):
+    """Under a budget the final evaluation times its probe (half the side) with the rays per pixel it plans, as many as a
+    view's at one ray per pixel, after an untimed warm-up render: a probe at one ray per pixel, timed cold, overestimated
+    colmap_mouse's final 2 x 2 rays 1.45x."""
+    from nerfpipe.training import evaluation
+
+    calls = []
+    real = evaluation.render_cameras
+
+    def recording(model, cameras, chunk=4096, background=None, supersample=1):
+        calls.append((int(cameras.width[0]), int(cameras.height[0]), supersample))
+        return real(model, cameras, chunk, background, supersample)
+
+    monkeypatch.setattr(evaluation, "render_cameras", recording)
+    t = Trainer(tcfg(iters=2, time_budget=3600.0, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path)
+    plan = t.train()["budget_plan"]["final_eval"]
+    assert plan["supersample"] == 2  # 8-pixel renders of 16-pixel views
+    warm, probe = calls[0], calls[1]
+    assert warm == (evaluation.PROBE_WARMUP, evaluation.PROBE_WARMUP, 1)
+    assert probe == (SIZE // 2 // evaluation.PROBE, SIZE // 2 // evaluation.PROBE, 2)
+
+
 def test_the_appearance_fit_is_planned_from_two_short_fits():
     """The final evaluation plans for the appearance fit of each view (NeRF-W's protocol) from two short fits timed:
     a fit of ``s`` steps that costs ``a + b s`` is estimated at the full count."""
