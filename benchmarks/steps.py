@@ -56,15 +56,17 @@ class StepsConfig:
 
 
 def model_config(preset: str, options: "tuple[str, ...]"):
-    from nerfpipe.estimators.occupancy import OccupancyGridConfig
     from nerfpipe.models.fast import FastConfig
+    from nerfpipe.util.configs import from_dict
 
-    from nerfpipe.fields.background import BackgroundFieldConfig
-
-    values = {k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in options)}
-    occ = {k.split(".", 1)[1]: values.pop(k) for k in list(values) if k.startswith("occupancy.")}
-    behind = {k.split(".", 1)[1]: values.pop(k) for k in list(values) if k.startswith("behind.")}
-    return FastConfig(preset=preset, occupancy=OccupancyGridConfig(**occ), behind=BackgroundFieldConfig(**behind), **values)
+    values: dict = {"preset": preset}
+    for key, value in (o.split("=", 1) for o in options):  # a nested config's option as ``behind.levels=(8,)``
+        *tables, name = key.split(".")
+        table = values
+        for t in tables:
+            table = table.setdefault(t, {})
+        table[name] = ast.literal_eval(value)
+    return from_dict(FastConfig, values, "the variant's options")
 
 
 def main(cfg: StepsConfig) -> "list[dict]":

@@ -78,10 +78,16 @@ def test_preset_overrides_reach_the_model_config():
 
 
 def test_steps_ab_tool_parses_options_and_validates_at_each_mark(scene_path, tmp_path):
+    import pytest
+
     from benchmarks.steps import StepsConfig, main, model_config
+    from nerfpipe.util.errors import NerfpipeError
 
     cfg = model_config("small", ("step_ratio=1.0", "occupancy.update_every=32", "levels=(8, 16)"))
     assert (cfg.step_ratio, cfg.occupancy.update_every, cfg.levels, cfg.preset) == (1.0, 32, (8, 16), "small")
+    assert model_config("auto", ("behind.levels=(4,)", "behind.grid_lr=0.5")).behind.levels == (4,)  # any nested config
+    with pytest.raises(NerfpipeError, match="nonexistent"):
+        model_config("auto", ("behind.nonexistent=1",))
     log = tmp_path / "steps.jsonl"
     rows = main(StepsConfig(tiny_lego(scene_path, tmp_path), options=("levels=(8, 16)",), marks=(2, 4), eval_views=1,
                             rays_per_step=64, threads=torch.get_num_threads(), log=log))
