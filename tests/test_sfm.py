@@ -285,17 +285,50 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
     from nerfpipe.plugins import sfm
     from nerfpipe.util.errors import NerfpipeError
 
-    seen = {}
+    seen = {"min_inliers": []}
 
     def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=None):
-        seen.update(images=images, matches_from=matches_from, min_inliers=min_inliers)
+        seen.update(images=images, matches_from=matches_from)
+        seen["min_inliers"].append(min_inliers)
         raise NerfpipeError("no reconstruction", work)
 
     monkeypatch.setattr(sfm, "reconstruct", mapping)
     chosen = object(), tmp_path / "size640" / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, None, logging.getLogger("test"))
     assert (rec, images) == chosen and record == {"registered": 0}
-    assert seen == {"images": tmp_path / "size640" / "grouped", "matches_from": tmp_path / "size640" / "database.db", "min_inliers": 60}
+    assert seen == {"images": tmp_path / "size640" / "grouped", "matches_from": tmp_path / "size640" / "database.db", "min_inliers": [60, 50]}
+
+
+@pytest.mark.parametrize("start, registered, tried", [(70, {70: 2, 60: 2, 50: 7}, [70, 60, 50]), (60, {60: 7, 50: 9}, [60]), (60, {60: 2, 50: 3}, [60, 50])])
+def test_the_strict_mapping_lowers_its_requirement_until_enough_photos_remain(tmp_path, monkeypatch, start, registered, tried):
+    """The strict mapping (``strict_check``) tries ``strict_min_inliers``, then 10 fewer each time down to 50, and checks the
+    first that leaves more than CHECK_VIEWS + 2 photos (at 60 three folded reconstructions of colmap_mouse's photos kept
+    two photos, at 50 seven right ones): its requirement is recorded; where none does, the last one is checked."""
+    import logging
+
+    from nerfpipe.plugins import sfm
+
+    calls = []
+
+    class Reconstruction:
+        def __init__(self, n: int) -> None:
+            self.n = n
+
+        def num_reg_images(self) -> int:
+            return self.n
+
+    def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=None):
+        calls.append(min_inliers)
+        return Reconstruction(registered[min_inliers]), {}
+
+    monkeypatch.setattr(sfm, "reconstruct", mapping)
+    monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
+    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
+    monkeypatch.setattr(sfm, "subset_check", lambda full, subset, *args, **kwargs: {"registered": subset[0].num_reg_images()})
+    chosen = object(), tmp_path / "images"
+    rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(strict_min_inliers=start), chosen, None, logging.getLogger("test"))
+    assert calls == tried and record == {"min_inliers": tried[-1], "registered": registered[tried[-1]]}
+    assert (rec, images) == chosen  # not kept: the check found nothing
 
 
 def test_similar_pairs_are_the_photos_that_share_features():
