@@ -243,6 +243,21 @@ def _subset_pair(scene_path, root: Path, fold: bool):
     return [(pycolmap.Reconstruction(str(f / "sparse" / "0")), f / "images") for f in (full, subset)]
 
 
+def test_keep_registered_leaves_the_named_photos_and_their_points(scene_path, tmp_path):
+    """What the strict mapping registers beyond the chosen reconstruction (a photo dropped there as far off) is
+    deregistered before the check, with the points only it saw."""
+    import pycolmap
+
+    from nerfpipe.plugins.sfm import keep_registered, model_rotations
+
+    names = sorted(p.name for p in (scene_path("colmap_mouse") / "images").iterdir())[::3][:8]
+    rec = pycolmap.Reconstruction(str(_mouse_subset(scene_path, tmp_path / "m", names) / "sparse" / "0"))
+    before, kept = rec.num_points3D(), sorted(model_rotations(rec))[:5]
+    keep_registered(rec, set(kept))
+    assert sorted(model_rotations(rec)) == kept and rec.num_reg_images() == 5
+    assert 0 < rec.num_points3D() < before and all(rec.point3D(i).track.length() >= 2 for i in rec.point3D_ids())
+
+
 MINIATURE_MARGIN = 0.3
 """The margin of these miniature checks (60 steps on 16 small photos): they separate by less than the stage's 400-step
 fits (``STRICT_MARGIN``): the fold +0.44 dB, right poses -2.46 (session 31; after 120 steps +0.57 / -2.87)."""
@@ -293,6 +308,7 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
         raise NerfpipeError("no reconstruction", work)
 
     monkeypatch.setattr(sfm, "reconstruct", mapping)
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
     chosen = object(), tmp_path / "size640" / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, None, logging.getLogger("test"))
     assert (rec, images) == chosen and record == {"registered": 0}
@@ -324,11 +340,53 @@ def test_the_strict_mapping_lowers_its_requirement_until_enough_photos_remain(tm
     monkeypatch.setattr(sfm, "reconstruct", mapping)
     monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
     monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
+    monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
     monkeypatch.setattr(sfm, "subset_check", lambda full, subset, *args, **kwargs: {"registered": subset[0].num_reg_images()})
     chosen = object(), tmp_path / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(strict_min_inliers=start), chosen, None, logging.getLogger("test"))
     assert calls == tried and record == {"min_inliers": tried[-1], "registered": registered[tried[-1]]}
     assert (rec, images) == chosen  # not kept: the check found nothing
+
+
+def test_the_strict_mapping_falls_back_on_another_image_sizes_matches(tmp_path, monkeypatch):
+    """Where the chosen image size's matches leave too few photos at every requirement (colmap_mouse's 23 photos at 640 px:
+    two), the strict mapping maps the other sizes' matches, and a kept strict reconstruction comes with its own photos."""
+    import logging
+
+    from nerfpipe.plugins import sfm
+
+    calls = []
+
+    class Reconstruction:
+        def __init__(self, n: int) -> None:
+            self.n = n
+
+        def num_reg_images(self) -> int:
+            return self.n
+
+    def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=None):
+        calls.append((matches_from.parent.name, min_inliers))
+        return Reconstruction(2 if matches_from.parent.name == "size640" else 7), {}
+
+    checked = {}
+
+    def check(full, subset, *args, **kwargs):
+        checked.update(images=subset[1])
+        return {"registered": 7, "kept": True, "check_psnr": [20.0, 21.0]}
+
+    monkeypatch.setattr(sfm, "reconstruct", mapping)
+    monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
+    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
+    monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+    monkeypatch.setattr(sfm, "subset_check", check)
+    chosen = Reconstruction(14), tmp_path / "size640" / "images"
+    rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, None, logging.getLogger("test"),
+                                           (tmp_path, tmp_path / "size640"))
+    assert calls == [("size640", 60), ("size640", 50), (tmp_path.name, 60)]
+    assert rec.n == 7 and images == tmp_path / "images" == checked["images"]
+    assert record["min_inliers"] == 60 and record["matches_of"] == tmp_path.name and record["kept"]
 
 
 def test_similar_pairs_are_the_photos_that_share_features():
