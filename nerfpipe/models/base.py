@@ -63,6 +63,10 @@ class SceneInfo:
     """Width of one training pixel at the scene box's centre, in scene units (median over the training
     cameras of their distance to the centre over their focal length; 0: unknown). The finest detail the
     photographs resolve there."""
+    support_plane: "tuple[float, float, float, float] | None" = None
+    """The plane the object stands on, ``(a, b, c, d)`` with a unit normal and ``a x + b y + c z + d > 0`` on the
+    cameras' side, found in the sparse points (:func:`nerfpipe.training.trainer.support_plane_of`); None: none found
+    (no points, a free-standing object, an aerial or a facade capture)."""
 
 
 class Callback(Enum):
