@@ -315,6 +315,28 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
     assert seen == {"images": tmp_path / "size640" / "grouped", "matches_from": tmp_path / "size640" / "database.db", "min_inliers": [60, 50]}
 
 
+class _Counted:
+    """A stand-in reconstruction for ``strict_check``'s tests: only its count of registered photos."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def num_reg_images(self) -> int:
+        return self.n
+
+
+def _strict_without_colmap(monkeypatch, mapping, check) -> None:
+    """``strict_check`` with ``mapping`` for ``reconstruct``, ``check`` for ``subset_check`` and the rest of COLMAP left out."""
+    from nerfpipe.plugins import sfm
+
+    monkeypatch.setattr(sfm, "reconstruct", mapping)
+    monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
+    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
+    monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+    monkeypatch.setattr(sfm, "subset_check", check)
+
+
 @pytest.mark.parametrize("start, registered, tried", [(70, {70: 2, 60: 2, 50: 7}, [70, 60, 50]), (60, {60: 7, 50: 9}, [60]), (60, {60: 2, 50: 3}, [60, 50])])
 def test_the_strict_mapping_lowers_its_requirement_until_enough_photos_remain(tmp_path, monkeypatch, start, registered, tried):
     """The strict mapping (``strict_check``) tries ``strict_min_inliers``, then 10 fewer each time down to 50, and checks the
@@ -326,23 +348,11 @@ def test_the_strict_mapping_lowers_its_requirement_until_enough_photos_remain(tm
 
     calls = []
 
-    class Reconstruction:
-        def __init__(self, n: int) -> None:
-            self.n = n
-
-        def num_reg_images(self) -> int:
-            return self.n
-
     def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=None):
         calls.append(min_inliers)
-        return Reconstruction(registered[min_inliers]), {}
+        return _Counted(registered[min_inliers]), {}
 
-    monkeypatch.setattr(sfm, "reconstruct", mapping)
-    monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
-    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
-    monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
-    monkeypatch.setattr(sfm, "subset_check", lambda full, subset, *args, **kwargs: {"registered": subset[0].num_reg_images()})
+    _strict_without_colmap(monkeypatch, mapping, lambda full, subset, *args, **kwargs: {"registered": subset[0].num_reg_images()})
     chosen = object(), tmp_path / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(strict_min_inliers=start), chosen, None, logging.getLogger("test"))
     assert calls == tried and record == {"min_inliers": tried[-1], "registered": registered[tried[-1]]}
@@ -358,16 +368,9 @@ def test_the_strict_mapping_falls_back_on_another_image_sizes_matches(tmp_path, 
 
     calls = []
 
-    class Reconstruction:
-        def __init__(self, n: int) -> None:
-            self.n = n
-
-        def num_reg_images(self) -> int:
-            return self.n
-
     def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=None):
         calls.append((matches_from.parent.name, min_inliers))
-        return Reconstruction(2 if matches_from.parent.name == "size640" else 7), {}
+        return _Counted(2 if matches_from.parent.name == "size640" else 7), {}
 
     checked = {}
 
@@ -375,13 +378,8 @@ def test_the_strict_mapping_falls_back_on_another_image_sizes_matches(tmp_path, 
         checked.update(images=subset[1])
         return {"registered": 7, "kept": True, "check_psnr": [20.0, 21.0]}
 
-    monkeypatch.setattr(sfm, "reconstruct", mapping)
-    monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
-    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
-    monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
-    monkeypatch.setattr(sfm, "subset_check", check)
-    chosen = Reconstruction(14), tmp_path / "size640" / "images"
+    _strict_without_colmap(monkeypatch, mapping, check)
+    chosen = _Counted(14), tmp_path / "size640" / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, None, logging.getLogger("test"),
                                            (tmp_path, tmp_path / "size640"))
     assert calls == [("size640", 60), ("size640", 50), (tmp_path.name, 60)]
