@@ -26,8 +26,8 @@ from nerfpipe.data.rays import RayBundle
 from nerfpipe.estimators.occupancy import OccupancyGridConfig, PackedSamples, ray_aabb_intersect
 from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
-from nerfpipe.fields.plane import PlaneTexture, PlaneTextureConfig
 from nerfpipe.fields.grid import BLOCK, axis_resolution, needed_blocks
+from nerfpipe.fields.plane import PlaneTexture, PlaneTextureConfig
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
@@ -206,7 +206,6 @@ training images, 3 held out), 0 / 0.01: 24.85 / 24.77 dB after 300 steps and 25.
 the occupied share 0.47 / 0.26; ``nerfpipe run --time-budget 180``: 25.02 / 25.04 dB (489 / 559 iterations), mesh
 98.4 % / 98.6 % of the points within 1 %, free-space violation 0.011 / 0.0095, and the fog slabs along the box's
 walls in the orbit's depth gone. The Sceaux castle's photographs cover 63°, the Sacre Coeur's 43°."""
-
 
 
 @dataclass
