@@ -75,13 +75,19 @@ def room(tmp_path_factory):
     return generate(tmp_path_factory.mktemp("room") / "room", cfg).path
 
 
-def test_the_room_scenes_support_plane_is_its_floor(room):
-    """In the loaded (normalised) frame: the room's floor z = ROOM_FLOOR, mapped there, is the plane found in its points."""
+@pytest.mark.parametrize("max_points", [None, 150])
+def test_the_room_scenes_support_plane_is_its_floor(room, monkeypatch, max_points):
+    """In the loaded (normalised) frame: the room's floor z = ROOM_FLOOR, mapped there, is the plane found in its points
+    (also from a sample of them, as for captures of more than SUPPORT_MAX_POINTS)."""
     from nerfpipe.data.synthetic import ROOM_FLOOR
     from nerfpipe.data_adapters import load
+    from nerfpipe.training import trainer
     from nerfpipe.training.trainer import scene_info, support_plane_of
 
+    if max_points is not None:
+        monkeypatch.setattr(trainer, "SUPPORT_MAX_POINTS", max_points)
     scene = load(room)
+    assert max_points is None or len(scene.points.xyz) > 2 * max_points
     plane = support_plane_of(scene)
     assert plane is not None and scene_info(scene).support_plane == plane
     floor = scene.world_from_input.apply_points(torch.tensor([[0.0, 0.0, ROOM_FLOOR], [1.0, 0.0, ROOM_FLOOR], [0.0, 1.0, ROOM_FLOOR]], dtype=torch.float64))

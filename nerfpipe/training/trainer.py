@@ -252,6 +252,9 @@ SUPPORT_MIN_SHARE = 0.05
 """Share of those lowest points the support plane must hold (it must also hold 1 % of all of them)."""
 SUPPORT_MIN_POINTS = 50
 """Sparse points below which no support plane is looked for."""
+SUPPORT_MAX_POINTS = 5000
+"""Sparse points the support plane's side tests read at most (a seeded sample of them): each test holds an array of
+points x 4,000 hypotheses in float64, 160 MB at this many (a 100,000-point capture would need 3.2 GB)."""
 SUPPORT_MAX_TILT = 20.0
 """Degrees the support plane's normal may lie from the cameras' mean up direction: among the sparse points alone a slope
 of the object can hold more of them than the table (colmap_mouse at 45: a plane 30 degrees off, through the mouse's back)."""
@@ -277,8 +280,10 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
     up = upright_direction(cams.to("cpu")).numpy()
     height = points @ (up / np.linalg.norm(up))
     low = points[height <= np.quantile(height, SUPPORT_LOWEST)]  # hypotheses from the bottom: a white table holds few points
-    plane = support_plane(low, points, centers, SUPPORT_TOLERANCE * robust_diagonal(points), min_inliers=SUPPORT_MIN_SHARE, up=up,
-                          max_tilt_deg=SUPPORT_MAX_TILT)
+    tolerance = SUPPORT_TOLERANCE * robust_diagonal(points)
+    if len(points) > SUPPORT_MAX_POINTS:  # the side tests hold [points, hypotheses] arrays: a seeded sample of them
+        points = points[np.random.default_rng(0).choice(len(points), SUPPORT_MAX_POINTS, replace=False)]
+    plane = support_plane(low, points, centers, tolerance, min_inliers=SUPPORT_MIN_SHARE, up=up, max_tilt_deg=SUPPORT_MAX_TILT)
     return None if plane is None else tuple(float(v) for v in plane)
 
 
