@@ -67,14 +67,13 @@ class PlaneTexture(nn.Module):
     def __init__(self, cfg: PlaneTextureConfig, plane: Float[Tensor, "4"], centre: Float[Tensor, "3"], radius: float, code_dim: int = 0) -> None:
         super().__init__()
         self.cfg, self.code_dim = cfg, code_dim
-        plane = plane.detach().float()
-        normal = plane[:3] / plane[:3].norm()
-        helper = torch.eye(3)[int(normal.abs().argmin())]
-        e1 = torch.linalg.cross(normal, helper)
+        plane = plane.detach().float() / plane[:3].norm()  # a unit normal
+        normal = plane[:3]
+        e1 = torch.linalg.cross(normal, torch.eye(3)[int(normal.abs().argmin())])
         e1 = e1 / e1.norm()
         e2 = torch.linalg.cross(normal, e1)
-        origin = centre.detach().float() - (centre.float() @ normal + plane[3] / plane[:3].norm()) * normal
-        self.register_buffer("plane", torch.cat([normal, (plane[3] / plane[:3].norm()).reshape(1)]))
+        origin = centre.detach().float() - (centre.float() @ normal + plane[3]) * normal
+        self.register_buffer("plane", plane)
         self.register_buffer("basis", torch.stack([e1, e2]))
         self.register_buffer("origin", origin)
         self.radius = float(radius)

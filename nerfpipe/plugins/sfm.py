@@ -217,15 +217,25 @@ def flatten_names(rec) -> None:
         image.name = Path(image.name).name
 
 
+def drop_untracked_points(rec) -> None:
+    """Delete the points of ``rec`` that fewer than two registered photos still see (after deregistrations)."""
+    for point_id in list(rec.point3D_ids()):
+        if rec.point3D(point_id).track.length() < 2:
+            rec.delete_point3D(point_id)
+
+
+def size_work(work: Path, size: int) -> Path:
+    """The work folder of the reconstruction at ``size`` px among ``candidate_sizes`` (its photos, matches and model)."""
+    return work / f"size{size}"
+
+
 def keep_registered(rec, names: "set[str]") -> None:
     """Deregister from ``rec`` the photos (by file name) not in ``names``, and the points that no longer have a track."""
     for image_id in list(rec.reg_image_ids()):
         image = rec.image(image_id)
         if Path(image.name).name not in names:
             rec.deregister_frame(image.frame_id)
-    for point_id in list(rec.point3D_ids()):
-        if rec.point3D(point_id).track.length() < 2:
-            rec.delete_point3D(point_id)
+    drop_untracked_points(rec)
 
 
 def drop_failed_registrations(rec, max_spread: float) -> "list[str]":
@@ -244,9 +254,7 @@ def drop_failed_registrations(rec, max_spread: float) -> "list[str]":
         if is_far or image.camera.has_bogus_params(0.1, 10.0, 1.0):
             dropped.append(image.name)
             rec.deregister_frame(image.frame_id)
-    for point_id in list(rec.point3D_ids()):
-        if rec.point3D(point_id).track.length() < 2:
-            rec.delete_point3D(point_id)
+    drop_untracked_points(rec)
     return sorted(dropped)
 
 
@@ -559,7 +567,7 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     rec, images, record = _choose_by_size(photos, work, config, first, time_left, log)
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
-        others = [work] + [work / f"size{size}" for size in config.candidate_sizes if (work / f"size{size}" / "database.db").is_file()]
+        others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
         rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others))
     return rec, images, record
 
@@ -652,7 +660,7 @@ at 50 every photo within 5 degrees of COLMAP's model of all 56 but one (of 8), a
 def strict_thresholds(start: int) -> "list[int]":
     """The strict mapping's requirements in verified matches per photo pair, strictest first: ``start``, then
     :data:`STRICT_STEP` less each time down to :data:`STRICT_FLOOR` (``start`` alone where it is at or below the floor):
-    at 60 three of six folded reconstructions of colmap_mouse's photos left only two photos, too few to check."""
+    at 60 three of seven folded reconstructions of colmap_mouse's photos left only two photos, too few to check."""
     return [start] + list(range(start - STRICT_STEP, STRICT_FLOOR - 1, -STRICT_STEP))
 
 
@@ -693,7 +701,7 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
             break
         cfg = dataclasses_replace(config, max_image_size=size)
         try:
-            other, _, other_images = _candidate(photos, work / f"size{size}", cfg, time_left)
+            other, _, other_images = _candidate(photos, size_work(work, size), cfg, time_left)
         except NerfpipeError:
             continue
         drop_failed_registrations(other, config.max_centre_spread)
