@@ -76,6 +76,23 @@ def test_the_plane_an_object_stands_on_is_found_and_removed():
     np.testing.assert_allclose(support_plane(cand, textured, cams, 0.02, normals), plane, atol=0.01)
 
 
+def test_support_plane_side_tests_in_chunks_give_the_same_plane(monkeypatch):
+    """The side tests hold [points, planes] arrays a chunk of planes at a time (100,000 points against 4,000
+    hypotheses would be 3.2 GB each): chunks of any size choose the same plane, and the same one as the tests of
+    every plane at once."""
+    import nerfpipe.mesh.clean as clean
+
+    ball, table = sphere(0.5, (0.0, 0.0, 0.5)), square(0.0)
+    points = np.concatenate([sample_surface(ball, 800, seed=1)[0], sample_surface(table, 300, seed=2)[0]])
+    cand, normals = candidates(merge(ball, table), points)
+    monkeypatch.setattr(clean, "SIDE_TEST_ELEMENTS", 1 << 40)
+    whole = support_plane(cand, points, ring(), 0.02, normals)
+    assert whole is not None and whole[2] > 0.999
+    for elements in (len(points) * 7, len(points) * 1000 + 5, 1):  # uneven chunks, and one plane at a time
+        monkeypatch.setattr(clean, "SIDE_TEST_ELEMENTS", elements)
+        np.testing.assert_array_equal(support_plane(cand, points, ring(), 0.02, normals), whole)
+
+
 def test_a_flat_slice_of_fog_without_sparse_points_is_no_support():
     """A few-view mesh: the table under the object is a small noisy patch and a tilted slice of fog holds more
     surface samples, but no sparse point: the table, which holds the points of the object's base, is chosen."""

@@ -261,6 +261,10 @@ def faces_blocking_sight_lines(
     return marked
 
 
+SIDE_TEST_ELEMENTS = 1 << 22
+"""Elements of the [points, planes] arrays that :func:`support_plane`'s side tests hold at once (32 MB of float64 each)."""
+
+
 def support_plane(
     candidates: Float[np.ndarray, "num_candidates 3"], points: Float[np.ndarray, "num_points 3"],
     centers: Float[np.ndarray, "num_cameras 3"], tolerance: float, normals: "Float[np.ndarray, 'num_candidates 3'] | None" = None,
@@ -298,8 +302,13 @@ def support_plane(
     length = np.linalg.norm(normal, axis=1)
     normal, tri = normal[length > 0] / length[length > 0, None], tri[length > 0]
     planes = np.concatenate([normal, -(normal * tri[:, 0]).sum(axis=1, keepdims=True)], axis=1)
-    planes = planes[_bounds_from_below(planes, points, centers, tolerance, cameras_above, points_above)]
-    planes = planes[np.mean(np.abs(points @ planes[:, :3].T + planes[:, 3]) < tolerance, axis=0) >= min_points]
+    keep = np.zeros(len(planes), dtype=bool)
+    step = max(1, SIDE_TEST_ELEMENTS // max(len(points), len(centers), 1))  # [points, planes] arrays of bounded size
+    for start in range(0, len(planes), step):
+        chunk = planes[start : start + step]  # a view: _bounds_from_below turns its planes towards the cameras in place
+        ok = _bounds_from_below(chunk, points, centers, tolerance, cameras_above, points_above)
+        keep[start : start + step] = ok & (np.mean(np.abs(points @ chunk[:, :3].T + chunk[:, 3]) < tolerance, axis=0) >= min_points)
+    planes = planes[keep]
     if up is not None:  # a floor or a table, not a wall: its normal within max_tilt_deg of the cameras' up
         planes = planes[planes[:, :3] @ (np.asarray(up, dtype=np.float64) / np.linalg.norm(up)) >= np.cos(np.radians(max_tilt_deg))]
     if len(planes) == 0:
