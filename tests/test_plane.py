@@ -170,3 +170,37 @@ def test_the_texture_renders_in_front_of_the_surroundings_and_round_trips_throug
     old = FastConfig(preset="small").setup(_info())  # a checkpoint from before the texture: rendered without it
     old.load_state_dict({k: v for k, v in state.items() if not k.startswith("plane.")}, strict=False)
     assert old.plane is None
+
+
+def test_the_texture_lies_at_its_distance_behind_what_the_field_behind_the_box_holds_in_front_of_it():
+    """A wall of the surroundings in front of the table's far plane hides it (a ray past a table's edge, towards the
+    room's wall); where the ray meets the plane under the box, the texture shows. Before session 36 the texture was
+    composited over everything behind the box."""
+    from nerfpipe.data.rays import RayBundle
+    from nerfpipe.estimators.occupancy import ray_aabb_intersect
+
+    model = FastConfig(preset="small").setup(_info()).eval()
+    n = 256
+    origins = torch.tensor([[0.0, -4.0, 1.5]]).expand(n, 3)
+    down = torch.linspace(0.2, 1.5, n)  # grazing rays meet the floor far away, steep ones under the box
+    directions = torch.nn.functional.normalize(torch.stack([torch.zeros(n), torch.ones(n), -down], -1), dim=-1)
+    rays = RayBundle(origins=origins, directions=directions, cam_idx=torch.zeros(n, dtype=torch.long), z_scale=torch.ones(n))
+    with torch.no_grad():
+        model.plane.mlp[2].bias[3], model.plane.mlp[2].bias[:3] = 20.0, -20.0  # an opaque black table
+        for table in model.behind.density_grid.tables:
+            table.fill_(50.0)  # everything behind the box opaque ...
+        model.behind.mlp[2].weight.zero_()
+        model.behind.mlp[2].bias.fill_(20.0)  # ... and white
+        for table in model.field.density_grid.tables:
+            table.fill_(-50.0)  # the box empty
+        out = model.get_outputs(rays, torch.full((n, 3), 0.5))
+    t_plane, hit = plane_hits(origins, directions, model.plane.plane)
+    t_in, t_exit = ray_aabb_intersect(origins, directions, BOX)
+    clear = out.acc < 0.01  # rays the box lets through
+    behind_wall = hit & (t_plane > t_exit + 0.5) & clear
+    under_box = hit & (t_in <= t_exit) & (t_plane <= t_exit + 1e-4) & clear  # through the box to its floor
+    assert behind_wall.sum() > 20 and under_box.sum() > 5
+    assert out.rgb[behind_wall].min() > 0.95  # the surroundings' wall in front of the far table
+    assert out.rgb[under_box].max() < 0.05  # the table where the ray meets it first
+    in_front = hit & (t_in > t_exit)  # rays that meet the table before the box: the opaque surroundings come first
+    assert in_front.sum() > 20 and out.rgb[in_front].min() > 0.95

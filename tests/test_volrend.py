@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import nerfpipe
-from nerfpipe.functional.volrend import accumulate, binary_entropy, composite, render_weights, volrend
+from nerfpipe.functional.volrend import accumulate, binary_entropy, composite, insert_layer, render_weights, volrend
 from reference import render_weights_loop, volrend_loop
 
 # The expected output printed on the CS180 project-4 page (part 2.5) for this exact input.
@@ -126,3 +126,48 @@ def test_binary_entropy_values_and_finite_gradients():
     h.sum().backward()
     assert torch.isfinite(acc.grad).all()
     assert acc.grad[1] > 0 > acc.grad[3]  # the gradient pushes a thin veil to clear and a thick one to close
+
+
+def _layered_loop(alphas, t, layer_t, layer_alpha):
+    """The slow, obvious reference of ``insert_layer``: the layer as one more sample in depth order, weights by a loop."""
+    weights, layer_weights = torch.zeros_like(alphas), torch.zeros_like(layer_t)
+    for r in range(alphas.shape[0]):
+        items = sorted([(float(t[r, i]), i) for i in range(alphas.shape[1])] + [(float(layer_t[r]), -1)],
+                       key=lambda x: (x[0], x[1] != -1))  # a sample at the layer's distance lies behind it
+        trans = torch.ones((), dtype=alphas.dtype)
+        for _, i in items:
+            a = layer_alpha[r] if i == -1 else alphas[r, i]
+            if i == -1:
+                layer_weights[r] = trans * a
+            else:
+                weights[r, i] = trans * a
+            trans = trans * (1 - a)
+    return weights, layer_weights
+
+
+def test_insert_layer_matches_a_sorted_loop_values_and_gradients(device, tol):
+    """A layer among a field's samples (the support plane's texture among those of the field behind the box) composites
+    as one more sample at its depth: values against a per-ray loop, gradients against the loop's in float64."""
+    g = torch.Generator().manual_seed(3)
+    alphas = torch.rand(6, 9, generator=g, dtype=torch.float64) * 0.6
+    t = torch.sort(torch.rand(6, 9, generator=g, dtype=torch.float64) * 10, dim=-1).values
+    layer_t = torch.tensor([-1.0, 0.0, 2.0, 5.0, 11.0, 4.0], dtype=torch.float64)  # in front of all, among, behind all
+    layer_t[1] = t[1, 3]  # exactly at a sample: that sample lies behind the layer
+    layer_alpha = torch.rand(6, generator=g, dtype=torch.float64)
+    layer_alpha[5] = 0.0  # no layer: the field's own weights
+    trans = torch.cumprod(torch.cat([torch.ones(6, 1, dtype=torch.float64), 1 - alphas[:, :-1]], -1), -1)
+    weights = alphas * trans
+    ref_w, ref_l = _layered_loop(alphas, t, layer_t, layer_alpha)
+    for dtype in (torch.float64, torch.float32):
+        w, lw = insert_layer(*(x.to(device, dtype) for x in (weights, t, layer_t, layer_alpha)))
+        torch.testing.assert_close(w.double().cpu(), ref_w, **tol(dtype))
+        torch.testing.assert_close(lw.double().cpu(), ref_l, **tol(dtype))
+    torch.testing.assert_close(insert_layer(weights, t, layer_t, layer_alpha)[0][5], weights[5])
+    assert torch.all(w.sum(-1) + lw <= 1 + 1e-6)
+    a, la = alphas.clone().requires_grad_(), layer_alpha.clone().requires_grad_()
+    fast = lambda a, la: insert_layer(a * torch.cumprod(torch.cat([torch.ones(6, 1, dtype=a.dtype), 1 - a[:, :-1]], -1), -1), t, layer_t, la)
+    weights_out = torch.rand(6, 9, dtype=torch.float64, generator=g)
+    gf = torch.autograd.grad((fast(a, la)[0] * weights_out).sum() + fast(a, la)[1].sum(), (a, la))
+    gr = torch.autograd.grad((_layered_loop(a, t, layer_t, la)[0] * weights_out).sum() + _layered_loop(a, t, layer_t, la)[1].sum(), (a, la))
+    for x, y in zip(gf, gr):
+        torch.testing.assert_close(x, y)

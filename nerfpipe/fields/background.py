@@ -22,7 +22,7 @@ from nerfpipe.fields.grid import DenseGridEncoding, grid_gather
 from nerfpipe.functional.contraction import contract, disparity_samples, disparity_to_distance, to_box_coordinates
 from nerfpipe.functional.packed import distortion_loss_packed
 from nerfpipe.functional.sampling import pdf_samples
-from nerfpipe.functional.volrend import render_weights
+from nerfpipe.functional.volrend import insert_layer, render_weights
 from nerfpipe.util.typing import Float, Tensor
 
 
@@ -184,9 +184,12 @@ class BackgroundField(nn.Module):
         background: Float[Tensor, "num_rays 3"],
         generator: "torch.Generator | None" = None,
         codes: "Float[Tensor, 'num_rays code_dim'] | None" = None,
+        layer: "tuple[Float[Tensor, 'num_rays'], Float[Tensor, 'num_rays'], Float[Tensor, 'num_rays 3']] | None" = None,
     ) -> BehindBox:
         """Render the field along each ray from ``t_start`` on, composited over ``background``; ``codes``
-        (one per ray, when built with ``code_dim``) condition the colour on the ray's image.
+        (one per ray, when built with ``code_dim``) condition the colour on the ray's image. ``layer``
+        (distance, opacity, colour per ray: the support plane's texture) is composited at its distance among
+        the samples (:func:`insert_layer`): what the field holds in front of it hides it.
 
         In training (``self.training``) the samples are stratified (random inside their intervals).
         """
@@ -219,13 +222,20 @@ class BackgroundField(nn.Module):
         weights, _ = render_weights(sigma, deltas)
         if self.fine and self.training:
             proposal = outer_weight_loss(edges, weights, coarse)
+        field_weights = weights
+        if layer is not None:
+            weights, layer_weight = insert_layer(weights, t, *layer[:2])
         acc = weights.sum(-1)
         rgb = (weights[..., None] * rgbs).sum(-2) + (1.0 - acc)[:, None] * background
+        depth = (weights * t).sum(-1)
+        if layer is not None:
+            rgb = rgb + layer_weight[:, None] * (layer[2] - background)
+            depth, acc = depth + layer_weight * layer[0], acc + layer_weight
         distortion = None
         if self.training and self.cfg.distortion_weight > 0 and not self.fine:
             edges = torch.arange(s + 1, device=origins.device, dtype=weights.dtype) / s  # uniform in disparity
             ray_indices = torch.arange(n, device=origins.device).repeat_interleave(s)
             distortion = distortion_loss_packed(
-                weights.reshape(-1), edges[:-1].repeat(n), edges[1:].repeat(n), ray_indices, n
+                field_weights.reshape(-1), edges[:-1].repeat(n), edges[1:].repeat(n), ray_indices, n
             )
-        return BehindBox(rgb=rgb, acc=acc, depth=(weights * t).sum(-1), distortion=distortion, proposal=proposal)
+        return BehindBox(rgb=rgb, acc=acc, depth=depth, distortion=distortion, proposal=proposal)

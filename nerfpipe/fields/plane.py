@@ -98,14 +98,23 @@ class PlaneTexture(nn.Module):
             feats.append(codes)
         return torch.sigmoid(self.mlp(torch.cat(feats, dim=-1)))  # colour and opacity
 
+    def layer(
+        self, origins: Float[Tensor, "num_rays 3"], directions: Float[Tensor, "num_rays 3"],
+        codes: "Float[Tensor, 'num_rays code_dim'] | None" = None,
+    ) -> "tuple[Float[Tensor, 'num_rays'], Float[Tensor, 'num_rays'], Float[Tensor, 'num_rays 3']]":
+        """Where each ray meets the plane (0 where it does not), the texture's opacity there (0 where it does not)
+        and its colour: a layer to composite at its distance among a field's samples
+        (:func:`nerfpipe.functional.volrend.insert_layer`)."""
+        t, hit = plane_hits(origins, directions, self.plane)
+        t = torch.where(hit, t, torch.zeros_like(t))
+        out = self.rgba(origins + t[:, None] * directions, codes)
+        return t, torch.where(hit, out[:, 3], torch.zeros_like(out[:, 3])), out[:, :3]
+
     def forward(
         self, origins: Float[Tensor, "num_rays 3"], directions: Float[Tensor, "num_rays 3"], background: Float[Tensor, "num_rays 3"],
         codes: "Float[Tensor, 'num_rays code_dim'] | None" = None,
     ) -> Float[Tensor, "num_rays 3"]:
         """The plane's colour composited with its opacity over ``background`` where the rays meet the plane from the
         cameras' side (the others keep ``background``)."""
-        t, hit = plane_hits(origins, directions, self.plane)
-        points = origins + torch.where(hit, t, torch.zeros_like(t))[:, None] * directions
-        out = self.rgba(points, codes)
-        alpha = torch.where(hit, out[:, 3], torch.zeros_like(out[:, 3]))[:, None]
-        return alpha * out[:, :3] + (1.0 - alpha) * background
+        _, alpha, rgb = self.layer(origins, directions, codes)
+        return alpha[:, None] * rgb + (1.0 - alpha[:, None]) * background

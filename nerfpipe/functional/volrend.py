@@ -151,3 +151,26 @@ def binary_entropy(acc: Float[Tensor, "*bs"], eps: float = 1e-3) -> Float[Tensor
     0 and 1): zero for rays that stop or pass, largest (``log 2``) for a half-transparent veil."""
     a = acc.clamp(eps, 1.0 - eps)
     return -(a * torch.log(a) + (1.0 - a) * torch.log1p(-a))
+
+
+def insert_layer(
+    weights: Float[Tensor, "*bs num_samples"], t: Float[Tensor, "*bs num_samples"], layer_t: Float[Tensor, "*bs"],
+    layer_alpha: Float[Tensor, "*bs"],
+) -> "tuple[Float[Tensor, '*bs num_samples'], Float[Tensor, '*bs']]":
+    """Compositing weights of samples along rays with a thin layer inserted at distance ``layer_t`` with opacity
+    ``layer_alpha`` (a textured plane among a field's samples): the samples in front of it (``t < layer_t``) keep
+    their weights, the layer gets what they let through times its opacity, and the samples behind it are dimmed
+    by ``1 - layer_alpha``.
+
+    Returns:
+        ``(weights, layer_weight)``; ``1 - weights.sum(-1) - layer_weight`` is what reaches the background.
+
+    Example:
+        >>> w, lw = insert_layer(torch.tensor([0.5, 0.5]), torch.tensor([1.0, 3.0]), torch.tensor(2.0), torch.tensor(0.5))
+        >>> w.tolist(), lw.item()
+        ([0.5, 0.25], 0.25)
+    """
+    front = t < layer_t[..., None]
+    front_weights = torch.where(front, weights, torch.zeros_like(weights))
+    passed = 1.0 - front_weights.sum(-1)  # the transmittance at the layer
+    return torch.where(front, weights, weights * (1.0 - layer_alpha[..., None])), layer_alpha * passed

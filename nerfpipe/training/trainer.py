@@ -253,8 +253,8 @@ SUPPORT_MIN_SHARE = 0.05
 SUPPORT_MIN_POINTS = 50
 """Sparse points below which no support plane is looked for."""
 SUPPORT_MAX_POINTS = 5000
-"""Sparse points the support plane's side tests read at most (a seeded sample of them): each test holds an array of
-points x 4,000 hypotheses in float64, 160 MB at this many (a 100,000-point capture would need 3.2 GB)."""
+"""Sparse points the support plane's side tests read at most (a seeded sample of them): each scene load looks for the
+plane, and its side tests compare every point with 4,000 hypotheses (in chunks: ``mesh.clean.SIDE_TEST_ELEMENTS``)."""
 SUPPORT_MAX_TILT = 20.0
 """Degrees the support plane's normal may lie from the cameras' mean up direction: among the sparse points alone a slope
 of the object can hold more of them than the table (colmap_mouse at 45: a plane 30 degrees off, through the mouse's back)."""
