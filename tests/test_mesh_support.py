@@ -1,6 +1,7 @@
 """The mesh of the object alone: the support plane and what lies below it, fog that sight lines cross,
 pieces far from the object, faces seen only from behind; objects without a support keep everything."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -240,6 +241,30 @@ def test_pipeline_meshes_the_ball_not_the_table():
     free = build_meshes(cfg, aabb, density_fn=lambda p: ball_on_table(p) * (p[..., 2] >= 0),
                         cameras=cameras_at(ring(heights=(1.2, -1.2))), sight_lines=observations(pts, normals, centers))
     assert free.figures["support_plane"] is None and "support_faces_removed" not in free.figures
+
+
+def test_a_support_plane_known_from_the_sparse_points_is_the_one_removed():
+    """Where the model knows the plane from the sparse points (``support``), the mesh stage removes that plane, not
+    one it finds in the mesh (a TSDF table's orientation wanders from run to run); with ``support_from_points`` off,
+    or without it, the mesh's own."""
+    aabb = torch.tensor([[-1.0, -1.0, -0.3], [1.0, 1.0, 1.0]])
+    centers = ring(heights=(1.2, 2.0))
+    ball = sphere(0.35, (0.0, 0.0, 0.35))
+    pts, normals = sample_surface(ball, 2000, seed=4)
+    pts, normals = pts[pts[:, 2] > 0.05], normals[pts[:, 2] > 0.05]
+    cfg = MeshConfig(method="mc", resolution=64, level=50.0, colors=False)
+    args = dict(density_fn=ball_on_table, cameras=cameras_at(centers), sight_lines=observations(pts, normals, centers))
+    tilt = math.radians(3.0)
+    known = np.array([math.sin(tilt), 0.0, math.cos(tilt), -0.02]) * 2.0  # not unit length: normalised
+    out = build_meshes(cfg, aabb, support=known, **args)
+    np.testing.assert_allclose(out.figures["support_plane"], known / np.linalg.norm(known[:3]))
+    assert out.figures["support_plane_from"] == "sparse points"
+    tol = out.figures["support_tolerance_world"]
+    height = out.full.vertices @ (known[:3] / 2.0) + known[3] / 2.0
+    assert (height[out.full.faces] >= tol).any(axis=1).all()  # every face left reaches above the known band
+    own = build_meshes(dataclasses.replace(cfg, support_from_points=False), aabb, support=known, **args)
+    assert own.figures["support_plane_from"] == "mesh" and abs(own.figures["support_plane"][2]) > 0.9999  # the table z = 0
+    assert build_meshes(cfg, aabb, **args).figures["support_plane"] == own.figures["support_plane"]
 
 
 def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):

@@ -114,6 +114,11 @@ def test_colmap_mouses_support_plane_bounds_its_points_from_below(scene_path):
     assert np.degrees(np.arccos(plane[:3] @ up / np.linalg.norm(up))) < SUPPORT_MAX_TILT
     centres = scene.split_cameras("train").centers.double().reshape(-1, 3).numpy()
     assert np.mean(centres @ plane[:3] + plane[3] > 0) >= 0.95
+    from nerfpipe.training.trainer import above_support
+
+    above = above_support(scene)  # the mesh figures' points on the mouse: not on the table, not under it
+    assert above is not None and np.array_equal(above, height > tol)
+    assert 100 < (~above).sum() < 0.2 * len(points)  # colmap_mouse: the table's points in and around the box
 
 
 def test_no_support_plane_without_points_or_surroundings(room):
@@ -204,3 +209,15 @@ def test_the_texture_lies_at_its_distance_behind_what_the_field_behind_the_box_h
     assert out.rgb[under_box].max() < 0.05  # the table where the ray meets it first
     in_front = hit & (t_in > t_exit)  # rays that meet the table before the box: the opaque surroundings come first
     assert in_front.sum() > 20 and out.rgb[in_front].min() > 0.95
+
+
+def test_the_mesh_stage_takes_the_support_plane_of_objects_photographed_from_around_them():
+    """``known_support``: the sparse points' plane (``SceneInfo.support_plane``) for the mesh stage where the cameras
+    surround the object, as for the texture; none for a facade or a model that knows no scene."""
+    from nerfpipe.mesh.trained import known_support
+
+    assert known_support(FastConfig(preset="small").setup(_info())) == (0.0, 0.0, 1.0, 1.0)
+    assert known_support(FastConfig(preset="small", support_texture=False).setup(_info())) == (0.0, 0.0, 1.0, 1.0)
+    assert known_support(FastConfig(preset="small").setup(_info(arc=math.radians(63)))) is None
+    assert known_support(FastConfig(preset="small").setup(_info(support_plane=None))) is None
+    assert known_support(torch.nn.Linear(1, 1)) is None

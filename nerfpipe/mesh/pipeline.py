@@ -110,6 +110,14 @@ class MeshConfig:
     support_max_tilt: float = 45.0
     """The support plane's normal lies within this many degrees of the cameras' mean up direction (a floor or a
     table; the Sacre Coeur photos otherwise gave a plane through the back of the dome)."""
+    support_from_points: bool = True
+    """Where the model knows the plane its object stands on from the sparse points (``SceneInfo.support_plane``: the
+    plane the ``fast`` model's table texture lies on, :func:`nerfpipe.training.trainer.support_plane_of`), that plane is
+    the support plane, not one found in the mesh. A TSDF-fused white table is a noisy layer under the true table (on
+    colmap_mouse its flat samples lie mostly 0.5 to 2 tolerances below the sparse points' plane, on the 23-photo cut a
+    slice 2.8 below holds the most), and the plane RANSAC finds in it wanders by degrees from run to run (six seeds on
+    one colmap_mouse mesh: two orientations 4.9 degrees apart, 93.2 to 96.5 % of the box's points within 1 %), each
+    degree tilting it into one side of the object's base or leaving table flakes on the other (session 36)."""
     footprint_margin: "float | None" = 0.05
     """With a support plane, faces whose foot on it lies farther than this share of the sparse points' extent
     outside the footprint of the object's points (their convex hull on the plane) are removed: table and fog beside
@@ -240,7 +248,8 @@ def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) 
     return choice.level
 
 
-def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None, lines=None) -> TriangleMesh:
+def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figures: dict, aabb=None, lines=None,
+           known_support=None) -> TriangleMesh:
     """Box sides, fog seen through, unseen faces, support plane, floaters and distant pieces, holes (MeshConfig)."""
     figures["faces_extracted"] = mesh.num_faces
     if cfg.box_sides > 0 and aabb is not None:
@@ -257,7 +266,7 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         if seen.any():
             mesh = mesh.submesh(seen)
     if points is not None and cfg.support_plane and cameras is not None and mesh.num_faces > 0:
-        mesh = _remove_support(mesh, cameras, points, cfg, figures)
+        mesh = _remove_support(mesh, cameras, points, cfg, figures, known_support if cfg.support_from_points else None)
     min_component = cfg.min_component if cfg.min_component is not None else (0.01 if cfg.method == "tsdf" else 0.05)
     if min_component > 0 or cfg.max_gap > 0:
         before = mesh.num_faces
@@ -295,18 +304,24 @@ def _peel_fog(mesh: TriangleMesh, cfg: MeshConfig, lines, points, slack: float, 
     return mesh
 
 
-def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfig, figures: dict) -> TriangleMesh:
-    """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane."""
+def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfig, figures: dict, known=None) -> TriangleMesh:
+    """Remove the support plane and what lies below it (MeshConfig.support_plane); records the plane. ``known``: the
+    plane where the sparse points give it (``MeshConfig.support_from_points``), else it is looked for in the mesh."""
     from nerfpipe.mesh.metrics import sample_surface
 
     tolerance = cfg.support_tolerance * robust_diagonal(points)
-    centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
-    samples, normals = sample_surface(mesh, 20_000)
-    candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
-    up = upright_direction(cameras.to("cpu")).numpy()
-    plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=cfg.support_min_share, up=up,
-                          max_tilt_deg=cfg.support_max_tilt, max_angle_deg=cfg.support_max_angle, min_points=cfg.support_min_points)
-    figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance)
+    if known is not None:
+        plane = np.asarray(known, dtype=np.float64)
+        plane = plane / np.linalg.norm(plane[:3])
+    else:
+        centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
+        samples, normals = sample_surface(mesh, 20_000)
+        candidates, normals = np.concatenate([samples, points]), np.concatenate([normals, np.zeros_like(points)])
+        up = upright_direction(cameras.to("cpu")).numpy()
+        plane = support_plane(candidates, points, centers, tolerance, normals, min_inliers=cfg.support_min_share, up=up,
+                              max_tilt_deg=cfg.support_max_tilt, max_angle_deg=cfg.support_max_angle, min_points=cfg.support_min_points)
+    figures.update(support_plane=None if plane is None else plane.tolist(), support_tolerance_world=tolerance,
+                   support_plane_from="sparse points" if known is not None else "mesh")
     if plane is None:
         return mesh
     below = faces_on_or_below_plane(mesh, plane, tolerance)
@@ -342,6 +357,7 @@ def build_meshes(
     surface_points: "Float[Tensor, 'num_points 3'] | None" = None,
     surface_origins: "Float[Tensor, 'num_points 3'] | None" = None,
     sight_lines=None,
+    support: "Float[np.ndarray, '4'] | None" = None,
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify, all in the world frame; writes nothing.
 
@@ -357,6 +373,8 @@ def build_meshes(
         surface_origins: their ray origins (agreement then uses the rays' median depth in the volume).
         sight_lines: the sparse points' track observations in the world frame
             (:class:`nerfpipe.mesh.reference.SightLines`): support plane and fog removal.
+        support: the plane the object stands on where the sparse points give it (world frame, ``a x + b y + c z + d``
+            positive on the cameras' side; ``MeshConfig.support_from_points``).
     """
     if cfg.faces is not None and cfg.faces < 4:
         raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
@@ -366,7 +384,7 @@ def build_meshes(
     mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures)
     t1 = time.perf_counter()
     figures["box_world"] = aabb.tolist()
-    mesh = _clean(mesh, cfg, cameras, figures, aabb, sight_lines)
+    mesh = _clean(mesh, cfg, cameras, figures, aabb, sight_lines, support)
     if cfg.colors and cfg.method == "mc" and rgb_fn is not None:
         mesh = vertex_colors(mesh, rgb_fn, chunk=cfg.chunk)
     if not cfg.colors:

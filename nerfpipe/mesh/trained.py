@@ -69,11 +69,23 @@ def mesh_model(
     with torch.no_grad():
         out = build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
                             cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
-                            sight_lines=lines)
+                            sight_lines=lines, support=known_support(model))
     if tsdf_cams is not None:
         size = int(torch.maximum(tsdf_cams.width, tsdf_cams.height).max())
         out.figures.update(tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
     return out
+
+
+def known_support(model):
+    """The plane the model's scene stands on, found in its sparse points (``SceneInfo.support_plane``, world frame), where
+    the cameras surround the object (``SceneInfo.arc`` at least ``SPARSITY_MIN_ARC``, the rule of the ``fast`` model's
+    table texture); None elsewhere (a facade's ground, a photo collection's steps: the mesh stage looks in the mesh)."""
+    from nerfpipe.models.fast import SPARSITY_MIN_ARC
+
+    info = getattr(model, "info", None)
+    if info is None or info.support_plane is None or info.arc < SPARSITY_MIN_ARC:
+        return None
+    return info.support_plane
 
 
 def crop_to_points(aabb, cameras, xyz, margin: float):

@@ -287,6 +287,24 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
     return None if plane is None else tuple(float(v) for v in plane)
 
 
+def above_support(scene: SceneData) -> "np.ndarray | None":
+    """Which of the scene's sparse points lie more than the support plane's tolerance (:data:`SUPPORT_TOLERANCE` of their
+    robust diagonal) above it (:func:`support_plane_of`): not on the table and not under it. None without such a plane,
+    or where the cameras do not surround the object (``SPARSITY_MIN_ARC``: facades and photo collections, whose ground the
+    mesh stage looks for in the mesh, if at all). The mesh figures' points on the object (the mesh stage removes the table)."""
+    from nerfpipe.models.fast import SPARSITY_MIN_ARC
+
+    plane = support_plane_of(scene)
+    if plane is None or camera_arc(scene.split_cameras("train"), scene.aabb.mean(0)) < SPARSITY_MIN_ARC:
+        return None
+    import numpy as np
+
+    from nerfpipe.mesh.metrics import robust_diagonal
+
+    xyz = scene.points.xyz.double().cpu().numpy()
+    return xyz @ np.asarray(plane[:3]) + plane[3] > SUPPORT_TOLERANCE * robust_diagonal(xyz)
+
+
 def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
     """Median over cameras of (distance to the box centre) / (focal length in pixels): one pixel's width there."""
     if not len(cams):
