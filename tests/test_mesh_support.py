@@ -250,12 +250,11 @@ def test_a_support_plane_known_from_the_sparse_points_is_the_one_removed():
     aabb = torch.tensor([[-1.0, -1.0, -0.3], [1.0, 1.0, 1.0]])
     centers = ring(heights=(1.2, 2.0))
     ball = sphere(0.35, (0.0, 0.0, 0.35))
-    pts, normals = sample_surface(ball, 2000, seed=4)
-    pts, normals = pts[pts[:, 2] > 0.05], normals[pts[:, 2] > 0.05]
+    pts, normals = sample_surface(ball, 2000, seed=4)  # the ball's base touches the table: points on it
     cfg = MeshConfig(method="mc", resolution=64, level=50.0, colors=False)
     args = dict(density_fn=ball_on_table, cameras=cameras_at(centers), sight_lines=observations(pts, normals, centers))
-    tilt = math.radians(3.0)
-    known = np.array([math.sin(tilt), 0.0, math.cos(tilt), -0.02]) * 2.0  # not unit length: normalised
+    tilt = math.radians(2.0)
+    known = np.array([math.sin(tilt), 0.0, math.cos(tilt), -0.01]) * 2.0  # not unit length: normalised
     out = build_meshes(cfg, aabb, support=known, **args)
     np.testing.assert_allclose(out.figures["support_plane"], known / np.linalg.norm(known[:3]))
     assert out.figures["support_plane_from"] == "sparse points"
@@ -265,6 +264,8 @@ def test_a_support_plane_known_from_the_sparse_points_is_the_one_removed():
     own = build_meshes(dataclasses.replace(cfg, support_from_points=False), aabb, support=known, **args)
     assert own.figures["support_plane_from"] == "mesh" and abs(own.figures["support_plane"][2]) > 0.9999  # the table z = 0
     assert build_meshes(cfg, aabb, **args).figures["support_plane"] == own.figures["support_plane"]
+    floor = build_meshes(cfg, aabb, support=np.array([0.0, 0.0, 1.0, 0.25]), **args)  # z = -0.25: no point of the ball on it
+    assert floor.figures["support_plane_from"] == "mesh" and floor.figures["support_plane"] == own.figures["support_plane"]
 
 
 def test_colmap_mouse_white_table_has_no_plane_a_textured_one_would(scene_path):

@@ -113,7 +113,8 @@ class MeshConfig:
     support_from_points: bool = True
     """Where the model knows the plane its object stands on from the sparse points (``SceneInfo.support_plane``: the
     plane the ``fast`` model's table texture lies on, :func:`nerfpipe.training.trainer.support_plane_of`), that plane is
-    the support plane, not one found in the mesh. A TSDF-fused white table is a noisy layer under the true table (on
+    the support plane, not one found in the mesh, where it holds ``support_min_points`` of the object's points (the
+    object touches it; a floor far under a table does not). A TSDF-fused white table is a noisy layer under the true table (on
     colmap_mouse its flat samples lie mostly 0.5 to 2 tolerances below the sparse points' plane, on the 23-photo cut a
     slice 2.8 below holds the most), and the plane RANSAC finds in it wanders by degrees from run to run (six seeds on
     one colmap_mouse mesh: two orientations 4.9 degrees apart, 93.2 to 96.5 % of the box's points within 1 %), each
@@ -310,9 +311,11 @@ def _remove_support(mesh: TriangleMesh, cameras: Cameras, points, cfg: MeshConfi
     from nerfpipe.mesh.metrics import sample_surface
 
     tolerance = cfg.support_tolerance * robust_diagonal(points)
+    if known is not None:  # where the object touches it: a floor far under a table holds none of the object's points
+        known = np.asarray(known, dtype=np.float64) / np.linalg.norm(np.asarray(known[:3], dtype=np.float64))
+        known = known if np.mean(np.abs(points @ known[:3] + known[3]) < tolerance) >= cfg.support_min_points else None
     if known is not None:
-        plane = np.asarray(known, dtype=np.float64)
-        plane = plane / np.linalg.norm(plane[:3])
+        plane = known
     else:
         centers = cameras.centers.double().reshape(-1, 3).cpu().numpy()
         samples, normals = sample_surface(mesh, 20_000)

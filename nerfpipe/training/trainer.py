@@ -262,7 +262,8 @@ of the object can hold more of them than the table (colmap_mouse at 45: a plane 
 
 def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | None":
     """The plane a real capture's object stands on, or None: :func:`nerfpipe.mesh.clean.support_plane` through the lowest
-    :data:`SUPPORT_LOWEST` of its sparse points, with 95 % of the training cameras above it, 98 % of the points above it or
+    :data:`SUPPORT_LOWEST` of its sparse points in the object region (``scene.aabb``; all of them where it holds fewer than
+    :data:`SUPPORT_MIN_POINTS`: a table, not the floor a room's points reach down to), with 95 % of the training cameras above it, 98 % of the points above it or
     on it, at least 1 % of them on it, and its normal within :data:`SUPPORT_MAX_TILT` degrees of the cameras' up direction
     (seeded: the same plane each time the scene is loaded). colmap_mouse: within 3.1 degrees and a tenth of a box height of the
     plane the mesh stage finds on its mesh; the room scene's floor exactly; ngp_fox (no plane under its points): None."""
@@ -275,7 +276,7 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
     from nerfpipe.mesh.metrics import robust_diagonal
 
     cams = scene.split_cameras("train")
-    points = scene.points.xyz.double().cpu().numpy()
+    points = _support_points(scene)
     centers = cams.centers.double().reshape(-1, 3).cpu().numpy()
     up = upright_direction(cams.to("cpu")).numpy()
     height = points @ (up / np.linalg.norm(up))
@@ -285,6 +286,17 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
         points = points[np.random.default_rng(0).choice(len(points), SUPPORT_MAX_POINTS, replace=False)]
     plane = support_plane(low, points, centers, tolerance, min_inliers=SUPPORT_MIN_SHARE, up=up, max_tilt_deg=SUPPORT_MAX_TILT)
     return None if plane is None else tuple(float(v) for v in plane)
+
+
+def _support_points(scene: SceneData) -> "np.ndarray":
+    """The sparse points the support plane is looked for in (float64): those in the object region, the plane under the
+    object rather than a floor farther down, or all of them where the region holds fewer than :data:`SUPPORT_MIN_POINTS`."""
+    import numpy as np
+
+    points = scene.points.xyz.double().cpu().numpy()
+    lo, hi = scene.aabb.double().cpu().numpy()
+    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    return points[inside] if inside.sum() >= SUPPORT_MIN_POINTS else points
 
 
 def above_support(scene: SceneData) -> "np.ndarray | None":
@@ -302,7 +314,7 @@ def above_support(scene: SceneData) -> "np.ndarray | None":
     from nerfpipe.mesh.metrics import robust_diagonal
 
     xyz = scene.points.xyz.double().cpu().numpy()
-    return xyz @ np.asarray(plane[:3]) + plane[3] > SUPPORT_TOLERANCE * robust_diagonal(xyz)
+    return xyz @ np.asarray(plane[:3]) + plane[3] > SUPPORT_TOLERANCE * robust_diagonal(_support_points(scene))
 
 
 def pixel_footprint(cams: Cameras, aabb: Float[Tensor, "2 3"]) -> float:
