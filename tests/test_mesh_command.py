@@ -188,3 +188,25 @@ def test_tsdf_fuses_where_rays_stop_not_the_fog_pulled_mean():
     out = mesh_model(cfg, FoggySphereModel(), sphere_scene(), RenderedViews(tsdf_views=12, tsdf_size=48))
     radius = np.linalg.norm(out.full.vertices, axis=1)
     assert out.figures["method"] == "tsdf" and abs(np.median(radius) - RADIUS) < 0.02  # the mean depth would put it at ~0.3 or less
+
+
+def test_eval_mesh_counts_the_objects_points_above_its_support(scene_path, tmp_path, capsys):
+    """colmap_mouse (photographed from around, on a table): eval-mesh counts the points inside the mesh's bounds that lie
+    above the plane the sparse points give (``above_support``), as the mesh stage does; the table's are not the object's."""
+    import trimesh
+
+    from nerfpipe.data_adapters import load
+    from nerfpipe.training.trainer import above_support
+
+    data = scene_path("colmap_mouse")
+    scene = load(data)
+    xyz = scene.world_from_input.inverse().apply_points(scene.points.xyz.double()).numpy()
+    hull = trimesh.convex.convex_hull(xyz[np.linalg.norm(xyz - np.median(xyz, 0), axis=1) < np.quantile(np.linalg.norm(xyz - np.median(xyz, 0), axis=1), 0.9)])
+    write_ply(TriangleMesh(hull.vertices, hull.faces), tmp_path / "hull.ply")
+    assert main(["eval-mesh", str(tmp_path / "hull.ply"), str(data), "--json", "--samples", "5000"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    above = above_support(scene)
+    tau = r["points_threshold"]
+    near = np.all((xyz >= hull.bounds[0] - tau) & (xyz <= hull.bounds[1] + tau), axis=1)
+    assert "above the support plane" in r["points_object_rule"]
+    assert r["points_used"] == int((near & above).sum()) and 0 < r["points_used"] < int(near.sum())
