@@ -52,7 +52,9 @@ def test_the_texture_keeps_the_background_where_rays_miss_and_learns_where_they_
     out = tex(origins, directions, bg)
     _, hit = plane_hits(origins, directions, FLOOR)
     assert torch.equal(out[~hit], bg[~hit])
-    assert torch.allclose(out[hit], bg[hit], atol=0.02 + 1e-6)  # nearly transparent at first: sigmoid(-4) = 0.018
+    alpha = tex.cfg.initial_opacity  # mostly transparent at first
+    assert torch.allclose(torch.sigmoid(tex.mlp[2].bias[3]), torch.tensor(alpha))
+    assert torch.allclose(out[hit], bg[hit], atol=alpha + 1e-6)
     assert tex.coordinates(torch.tensor([[0.0, 0.0, -0.5]])).abs().max() < 1e-6  # the centre's foot is the texture's middle
     target = torch.zeros(512, 3)  # a black table in front of a bright background: the sheet must become opaque and dark
     opt = torch.optim.Adam(tex.parameters(), lr=0.05)
