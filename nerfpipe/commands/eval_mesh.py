@@ -71,21 +71,13 @@ def _against_dataset(pred, ref: Path, threshold, samples, crop: bool) -> dict:
 
     scene = load(ref)
     gt, points = dataset_references(scene, ref)
-    on_object, rule = None, None
+    above = None
     if crop and points is not None and scene.points is not None and len(scene.points.xyz) == len(points):
-        import numpy as np
-
-        from nerfpipe.mesh.metrics import default_threshold
         from nerfpipe.training.trainer import above_support
 
         above = above_support(scene)  # not on the table the object stands on, as the mesh stage counts them
-        if above is not None:
-            tau = default_threshold(pred) if threshold is None else float(threshold)
-            lo, hi = pred.bounds()
-            near = np.all((np.asarray(points) >= lo - tau) & (np.asarray(points) <= hi + tau), axis=1)
-            on_object, rule = near & above, "inside the mesh's bounds grown by the threshold, above the support plane"
     try:
         return reference_figures(pred, gt, points, threshold, samples, crop, gt_prefix="gt_mesh_", sight_lines=sight_lines(scene),
-                                 on_object=on_object, object_rule=rule)
+                                 above_support=above)
     except NerfpipeError as exc:
         raise NerfpipeError(exc.problem, ref) from exc

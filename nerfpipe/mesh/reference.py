@@ -19,14 +19,16 @@ def points_figures(
     threshold: "float | None" = None,
     crop: bool = True,
     on_object: "Bool[np.ndarray, 'num_points'] | None" = None,
-    object_rule: "str | None" = None,
+    above_support: "Bool[np.ndarray, 'num_points'] | None" = None,
 ) -> dict:
     """How well ``mesh`` and sparse ``points`` agree, at a threshold (default: 1% of the mesh's diagonal).
 
     * ``points_within_threshold``: fraction of the points *on the object* within the threshold of the
       mesh (completeness). Which points are on the object is stated in ``points_object_rule``: those of
-      ``on_object`` (e.g. inside the box that was meshed; ``object_rule`` names it), else with ``crop`` those inside the mesh's
-      box grown by the threshold, else all; ``points_excluded`` counts the others.
+      ``on_object`` (e.g. inside the box that was meshed), else with ``crop`` those inside the mesh's
+      box grown by the threshold, else all; of them, with ``above_support``, only those above the plane the object
+      stands on (the table is not the object: :func:`nerfpipe.training.trainer.above_support`); ``points_excluded``
+      counts the others.
     * ``points_all_within_threshold``: the same fraction over all points.
     * ``mesh_area_near_points``: fraction of the mesh's area within the threshold of some point
       (accuracy; a fog mesh has most of its area far from every point). Sparse points are sparse,
@@ -37,7 +39,8 @@ def points_figures(
     tau = default_threshold(mesh) if threshold is None else float(threshold)
     points = np.asarray(points, dtype=np.float64)
     rule, keep = _object_points(mesh, points, tau, crop, on_object)
-    rule = object_rule or rule
+    if above_support is not None:
+        rule, keep = f"{rule}, above the support plane", keep & np.asarray(above_support, dtype=bool)
     if not keep.any():
         raise NerfpipeError("no sparse point lies near the mesh: is the mesh in the dataset's frame?")
     fig, every = point_fraction(points[keep], mesh, tau), point_fraction(points, mesh, tau)
@@ -77,7 +80,7 @@ def reference_figures(
     gt_prefix: str = "",
     on_object: "Bool[np.ndarray, 'num_points'] | None" = None,
     sight_lines: "SightLines | None" = None,
-    object_rule: "str | None" = None,
+    above_support: "Bool[np.ndarray, 'num_points'] | None" = None,
 ) -> dict:
     """F-score, Chamfer... against ``gt_mesh`` (keys prefixed by ``gt_prefix``), the points figures and,
     with ``sight_lines``, the free-space violation (:func:`nerfpipe.mesh.metrics.free_space_violation`).
@@ -94,7 +97,7 @@ def reference_figures(
     if gt_mesh is not None:
         out.update({f"{gt_prefix}{k}": v for k, v in compare_meshes(mesh, gt_mesh, threshold, num_samples=samples).to_dict().items()})
     if has_points:
-        out.update(points_figures(mesh, np.asarray(points, dtype=np.float64), threshold, crop, on_object, object_rule))
+        out.update(points_figures(mesh, np.asarray(points, dtype=np.float64), threshold, crop, on_object, above_support))
         if sight_lines is not None:
             from nerfpipe.mesh.metrics import free_space_violation
 

@@ -77,15 +77,13 @@ def mesh_model(
 
 
 def known_support(model):
-    """The plane the model's scene stands on, found in its sparse points (``SceneInfo.support_plane``, world frame), where
-    the cameras surround the object (``SceneInfo.arc`` at least ``SPARSITY_MIN_ARC``, the rule of the ``fast`` model's
-    table texture); None elsewhere (a facade's ground, a photo collection's steps: the mesh stage looks in the mesh)."""
-    from nerfpipe.models.fast import SPARSITY_MIN_ARC
+    """The plane the model's scene stands on, found in its sparse points, where the cameras surround the object
+    (:func:`nerfpipe.models.fast.object_support` of the model's ``SceneInfo``, world frame); None elsewhere (a facade's
+    ground, a photo collection's steps: the mesh stage looks in the mesh) and for models that know no scene."""
+    from nerfpipe.models.fast import object_support
 
     info = getattr(model, "info", None)
-    if info is None or info.support_plane is None or info.arc < SPARSITY_MIN_ARC:
-        return None
-    return info.support_plane
+    return None if info is None else object_support(info)
 
 
 def crop_to_points(aabb, cameras, xyz, margin: float):

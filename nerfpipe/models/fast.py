@@ -208,6 +208,13 @@ the occupied share 0.47 / 0.26; ``nerfpipe run --time-budget 180``: 25.02 / 25.0
 walls in the orbit's depth gone. The Sceaux castle's photographs cover 63°, the Sacre Coeur's 43°."""
 
 
+def object_support(info: SceneInfo) -> "tuple[float, float, float, float] | None":
+    """The plane an object photographed from around it stands on (``info.support_plane`` where the cameras cover at least
+    :data:`SPARSITY_MIN_ARC`): the table texture's plane, the one the mesh stage removes and the mesh figures' object
+    points lie above; None for facades and photo collections, or without such a plane."""
+    return info.support_plane if info.arc >= SPARSITY_MIN_ARC else None
+
+
 @dataclass
 class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
@@ -643,11 +650,11 @@ class FastModel(Model):
             head_in = dir_code if codes is None else torch.cat([dir_code, codes], dim=-1)
             bg = (bg + self.background(head_in)).clamp(0.0, 1.0)
         beyond = self._step >= self.cfg.behind_from or not self.training
-        layer = self.plane.layer(rays.origins, rays.directions, codes) if self.plane is not None and beyond else None  # the table
-        if self.behind is not None and beyond:  # the table at its distance among what lies behind the box
+        if self.behind is not None and beyond:  # the table (the plane's texture) at its distance among what lies behind the box
+            layer = self.plane.layer(rays.origins, rays.directions, codes) if self.plane is not None else None
             bg = self._behind(rays, dir_code, t_exit, bg, acc, extras, codes, layer)
-        elif layer is not None:
-            bg = layer[1][:, None] * layer[2] + (1.0 - layer[1][:, None]) * bg
+        elif self.plane is not None and beyond:
+            bg = self.plane(rays.origins, rays.directions, bg, codes)
         rgb = rgb + (1.0 - acc)[:, None] * bg  # over the background, as composite_packed does
         if self.appearance is not None and (self.training or self._view_appearance is not None):
             rgb = self._corrected(rgb, rays.cam_idx)

@@ -49,42 +49,37 @@ def evaluate(config: MeshStageConfig, ctx: StageContext, scene, mesh_input_frame
     """The geometry figures against the input's references; None when it has none.
 
     The sparse points "on the object" are those inside the box that was meshed (world frame) and, where the scene's
-    sparse points give the plane the object stands on, not on or under it (:func:`object_points`).
+    sparse points give the plane the object stands on, not on or under it (:func:`nerfpipe.training.trainer.above_support`:
+    the mesh stage removes the table, and counted, colmap_mouse's 424 of 4,411 boxed points on or under it held a mesh of
+    the object alone under 95 %; ``points_box_within_threshold`` keeps the box rule's figure).
     """
     from nerfpipe.mesh.reference import dataset_references, reference_figures, sight_lines
 
     gt, points = dataset_references(scene, ctx.source)
     if gt is None and points is None:
         return None
-    on_object, rule, in_box = None, None, None
+    in_box = above = None
     if points is not None:
-        on_object, rule, in_box = object_points(scene, box_world)
+        from nerfpipe.training.trainer import above_support
+
+        in_box, above = meshed_box_points(scene, box_world), above_support(scene)
     reference = "gt_mesh.ply" if gt is not None else "sparse points"
-    figures = reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples, on_object=on_object, sight_lines=sight_lines(scene),
-                                object_rule=rule)
-    if in_box is not None and "points_threshold" in figures:
+    figures = reference_figures(mesh_input_frame, gt, points, config.threshold, config.samples, on_object=in_box, sight_lines=sight_lines(scene),
+                                above_support=above)
+    if in_box is not None and "points_threshold" in figures:  # the box rule's figure beside it
         from nerfpipe.mesh.metrics import point_fraction
 
         figures["points_box_within_threshold"] = point_fraction(points[in_box], mesh_input_frame, figures["points_threshold"])["fraction_within"]
     return {"reference": reference, **figures}
 
 
-def object_points(scene, box_world) -> "tuple[np.ndarray, str, np.ndarray]":
-    """Which sparse points are on the object, the rule's name, and which lie inside the meshed box ``box_world``: those
-    inside it and, where the scene's points give a support plane, above it (:func:`nerfpipe.training.trainer.above_support`).
-    Points on the table are not on the object: the mesh stage removes the table, and counted they held a mesh of the
-    object alone under 95 % of them (colmap_mouse: 424 of the 4,411 points in its meshed box lie on or under the plane)."""
+def meshed_box_points(scene, box_world) -> "np.ndarray":
+    """Which of the scene's sparse points lie inside the meshed box ``box_world`` (world frame)."""
     import numpy as np
-
-    from nerfpipe.training.trainer import above_support
 
     lo, hi = np.asarray(box_world, dtype=np.float64)
     xyz = scene.points.xyz.double().cpu().numpy()
-    in_box = np.all((xyz >= lo) & (xyz <= hi), axis=1)
-    above = above_support(scene)
-    if above is None:
-        return in_box, "inside the meshed box", in_box
-    return in_box & above, "inside the meshed box, above the support plane", in_box
+    return np.all((xyz >= lo) & (xyz <= hi), axis=1)
 
 
 def budgeted(cfg: MeshConfig, seconds_left: "float | None") -> MeshConfig:

@@ -301,13 +301,13 @@ def _support_points(scene: SceneData) -> "np.ndarray":
 
 def above_support(scene: SceneData) -> "np.ndarray | None":
     """Which of the scene's sparse points lie more than the support plane's tolerance (:data:`SUPPORT_TOLERANCE` of their
-    robust diagonal) above it (:func:`support_plane_of`): not on the table and not under it. None without such a plane,
-    or where the cameras do not surround the object (``SPARSITY_MIN_ARC``: facades and photo collections, whose ground the
-    mesh stage looks for in the mesh, if at all). The mesh figures' points on the object (the mesh stage removes the table)."""
-    from nerfpipe.models.fast import SPARSITY_MIN_ARC
+    robust diagonal) above it: not on the table and not under it. None where :func:`nerfpipe.models.fast.object_support`
+    gives no plane (no plane in the points, or a facade or photo collection, whose ground the mesh stage looks for in the
+    mesh, if at all). The mesh figures' points on the object (the mesh stage removes the table)."""
+    from nerfpipe.models.fast import object_support
 
-    plane = support_plane_of(scene)
-    if plane is None or camera_arc(scene.split_cameras("train"), scene.aabb.mean(0)) < SPARSITY_MIN_ARC:
+    plane = object_support(scene_info(scene))
+    if plane is None:
         return None
     import numpy as np
 
