@@ -201,7 +201,8 @@ def test_eval_mesh_counts_the_objects_points_above_its_support(scene_path, tmp_p
     data = scene_path("colmap_mouse")
     scene = load(data)
     xyz = scene.world_from_input.inverse().apply_points(scene.points.xyz.double()).numpy()
-    hull = trimesh.convex.convex_hull(xyz[np.linalg.norm(xyz - np.median(xyz, 0), axis=1) < np.quantile(np.linalg.norm(xyz - np.median(xyz, 0), axis=1), 0.9)])
+    spread = np.linalg.norm(xyz - np.median(xyz, 0), axis=1)
+    hull = trimesh.convex.convex_hull(xyz[spread < np.quantile(spread, 0.9)])
     write_ply(TriangleMesh(hull.vertices, hull.faces), tmp_path / "hull.ply")
     assert main(["eval-mesh", str(tmp_path / "hull.ply"), str(data), "--json", "--samples", "5000"]) == 0
     r = json.loads(capsys.readouterr().out)

@@ -90,7 +90,7 @@ class PlaneTexture(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(cfg.feature_channels * len(cfg.levels) + code_dim, cfg.hidden), nn.ReLU(inplace=True),
                                  nn.Linear(cfg.hidden, 4))
         with torch.no_grad():
-            self.mlp[2].bias[3] = math.log(cfg.initial_opacity / (1.0 - cfg.initial_opacity))  # nearly transparent at first
+            self.mlp[2].bias[3] = math.log(cfg.initial_opacity / (1.0 - cfg.initial_opacity))  # mostly transparent at first (initial_opacity)
 
     def coordinates(self, points: Float[Tensor, "num_points 3"]) -> Float[Tensor, "num_points 2"]:
         """Contracted plane coordinates of ``points`` (on the plane) in ``[-1, 1]^2``."""
