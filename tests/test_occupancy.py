@@ -131,11 +131,13 @@ def sparse_grid(skip_factor, seed=3):
 
 
 @pytest.mark.parametrize("jitter", [False, True])
-def test_two_level_skipping_keeps_exactly_the_same_intervals(jitter):
-    """The coarse pass only skips intervals the fine test would drop: same samples, far fewer marched."""
+@pytest.mark.parametrize("skip_factor", [3, 4])
+def test_two_level_skipping_keeps_exactly_the_same_intervals(jitter, skip_factor):
+    """The coarse pass only skips intervals the fine test would drop: same samples, far fewer marched (a skip factor
+    of 3 leaves a partial coarse cell at the end of the 32 cells)."""
     o, d = rays(600, seed=4)
     d[::5] = torch.nn.functional.normalize(torch.randn(120, 3, generator=torch.Generator().manual_seed(5)), dim=-1)
-    fast, slow = sparse_grid(skip_factor=4), sparse_grid(skip_factor=0)
+    fast, slow = sparse_grid(skip_factor=skip_factor), sparse_grid(skip_factor=0)
     torch.manual_seed(7)
     got = fast.march(o, d, near=0.0, far=10.0, step_size=0.02, jitter=jitter)
     torch.manual_seed(7)

@@ -196,7 +196,7 @@ def test_the_final_evaluations_probe_renders_the_planned_rays_per_pixel_after_a_
     calls = []
     real = evaluation.render_cameras
 
-    def recording(model, cameras, chunk=4096, background=None, supersample=1):
+    def recording(model, cameras, chunk=None, background=None, supersample=1):
         calls.append((int(cameras.width[0]), int(cameras.height[0]), supersample))
         return real(model, cameras, chunk, background, supersample)
 

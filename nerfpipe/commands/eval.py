@@ -11,7 +11,7 @@ def eval_run(
     scale: float = 1.0,
     max_size: "int | None" = None,
     supersample: int = 2,
-    chunk: int = 4096,
+    chunk: "int | None" = None,
     device: str = "auto",
     json: bool = False,
     pictures: bool = False,
@@ -27,7 +27,7 @@ def eval_run(
         max_size: longer side of the renders in pixels at most (none: full size).
         supersample: rays per pixel side at most in renders smaller than their photographs, each pixel the mean over its
             area (1: one ray through its centre; full-size renders always take one).
-        chunk: rays per forward pass (bounds memory).
+        chunk: rays per forward pass (bounds memory; default: the model's ``render_chunk``).
         device: torch device (auto: CUDA when present, else CPU; printed first, or named in the JSON).
         json: print the result as JSON only.
         pictures: also write each view's photograph, render and error map side by side to RUN_DIR/eval/ (one colour
@@ -46,7 +46,7 @@ def eval_run(
 
     refuse_unless([("views", views >= 0, "0 or more", views), ("scale", 0 < scale <= 16, "a positive factor (at most 16)", scale),
                    ("max_size", max_size is None or max_size >= 1, "at least 1", max_size),
-                   ("supersample", 1 <= supersample <= 8, "1 to 8", supersample), ("chunk", chunk >= 1, "at least 1", chunk)])
+                   ("supersample", 1 <= supersample <= 8, "1 to 8", supersample), ("chunk", chunk is None or chunk >= 1, "at least 1", chunk)])
     require("kornia", "kornia")
     folder = model_dir(Path(run_dir))
     device = check_device(device)

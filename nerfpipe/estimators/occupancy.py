@@ -313,16 +313,25 @@ class OccupancyGrid(nn.Module):
         h, n_max = self._coarse_steps()
         n = ((lim.t1 - lim.t0) / h).ceil().clamp(min=0, max=n_max).long()
         j = torch.arange(n_max, device=n.device)
+        # the samples in coarse cells' units: a start and a step per ray, one multiply-add per sample (a float
+        # rounding moves a sample by far less than the half coarse cell the argument above leaves to spare)
+        scale = (self.cfg.resolution / f) / (self.aabb[1] - self.aabb[0])
+        start = (lim.origins + lim.t0[:, None] * lim.directions - self.aabb[0]) * scale
+        stride = lim.directions * (h * scale)
+        half = (j + 0.5).to(lim.t0.dtype)[None, :, None]
         j_first, j_last, hit_any = [], [], []
         for s in range(0, len(n), max(1, chunk // n_max)):
             rows = slice(s, s + max(1, chunk // n_max))
-            t = lim.t0[rows, None] + (j + 0.5).to(lim.t0.dtype) * h
-            pts = lim.origins[rows, None, :] + t[..., None] * lim.directions[rows, None, :]
-            ijk = self._cell_ijk(pts)[0] // f  # points outside the box count in the nearest coarse cell
-            hit = coarse[(ijk[..., 0] * rc + ijk[..., 1]) * rc + ijk[..., 2]] & (j < n[rows, None])
-            j_first.append(hit.byte().argmax(dim=1))
-            j_last.append(n_max - 1 - hit.flip(1).byte().argmax(dim=1))
-            hit_any.append(hit.any(dim=1))
+            q = torch.addcmul(start[rows, None, :], half, stride[rows, None, :]).floor_().nan_to_num_(0.0).clamp_(0, rc - 1)
+            if rc**3 > 1 << 24 or q.dtype != torch.float32:  # rows a float32 would not hold exactly
+                q = q.long()
+            cells = (q[..., 0] * rc + q[..., 1]).mul_(rc).add_(q[..., 2]).long()
+            hit = coarse[cells] & (j < n[rows, None])  # points outside the box count in the nearest coarse cell
+            first = torch.where(hit, j, n_max).amin(dim=1)  # the first and last hit (none: 0 and n_max - 1, unused)
+            any_hit = first < n_max
+            j_first.append(torch.where(any_hit, first, 0))
+            j_last.append(torch.where(any_hit, torch.where(hit, j, -1).amax(dim=1), n_max - 1))
+            hit_any.append(any_hit)
         jf, jl, any_hit = torch.cat(j_first), torch.cat(j_last), torch.cat(hit_any)
         per_step = h / lim.step_size
         first = ((jf * per_step - lim.offset).floor().long() - 1).clamp(min=0)

@@ -22,8 +22,8 @@ class RenderedViews:
     """Training views rendered for tsdf (evenly spread)."""
     tsdf_size: int = 256
     """Longer side in pixels of the tsdf depth renders."""
-    chunk: int = 4096
-    """Rays per forward pass when rendering."""
+    chunk: "int | None" = None
+    """Rays per forward pass when rendering (None: the model's ``render_chunk``)."""
     min_views: int = 8
     """Under a time budget, fewer TSDF views are rendered (evenly spread), but never fewer than this."""
     budget_share: float = 0.8
@@ -38,7 +38,7 @@ class RenderedViews:
         refuse_unless((
             ("tsdf_views", self.tsdf_views >= 1, "at least 1", self.tsdf_views),
             ("tsdf_size", 8 <= self.tsdf_size <= 8192, "between 8 and 8192 pixels", self.tsdf_size),
-            ("chunk", self.chunk >= 1, "at least 1", self.chunk),
+            ("chunk", self.chunk is None or self.chunk >= 1, "at least 1", self.chunk),
         ))  # fmt: skip
 
 
@@ -111,7 +111,7 @@ def box_and_occupancy(model, scene_aabb):
     return box, lambda p: grid.occupied(p.to(grid.aabb.device))
 
 
-def surface_points(model, train, chunk: int, device: str, views: int = 8, size: int = 128):
+def surface_points(model, train, chunk: "int | None", device: str, views: int = 8, size: int = 128):
     """Where the rays of a few rendered training views end (opaque pixels only, expected depth) and their origins, world frame."""
     import torch
 
@@ -135,7 +135,7 @@ not fit were rendered at half the size at least: beside other jobs (load ~4), th
 18 s left and took 85 s for 8 such views, and `nerfpipe run --time-budget 300` ended after 378 s."""
 
 
-def tsdf_frames(model, train, views: int, size: int, chunk: int, device: str, seconds: "float | None" = None, min_views: int = 8):
+def tsdf_frames(model, train, views: int, size: int, chunk: "int | None", device: str, seconds: "float | None" = None, min_views: int = 8):
     """Undistorted, resized training cameras (``views`` of them, evenly spread) and a ``frame_fn`` rendering
     their depth and colour. With ``seconds``, the first view is rendered and timed, and only as many views as
     fit in ``seconds`` are kept: when fewer than ``2 min_views`` fit, that many are rendered smaller (down to half

@@ -89,6 +89,10 @@ class Model(nn.Module):
     points), on the model's device. The trainer sets it so that a run is reproducible and leaves
     torch's global stream alone; None: torch's global stream."""
 
+    render_chunk: int = 4096
+    """Rays per forward pass when rendering whole images where the caller names none (bounds memory: the classic
+    MLP's 192 samples per ray take a few GB at 16,384 rays)."""
+
     def get_outputs(self, rays: RayBundle, background: Float[Tensor, "*bs 3"]) -> RenderOutputs:
         """Render rays, compositing over ``background`` (one colour per ray)."""
         raise NotImplementedError

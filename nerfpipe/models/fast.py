@@ -474,6 +474,13 @@ class FastConfig:
 class FastModel(Model):
     """Grid field (dense coarse levels, hashed fine ones) + occupancy grid + packed volume rendering."""
 
+    render_chunk = 16384
+    """Rays per forward pass when rendering whole images (:attr:`Model.render_chunk`): each pass has fixed costs (the
+    rays' coarse span through the occupancy grid, the rounds of early termination, the field behind the box). On this
+    2-core CPU a held-out view of colmap_mouse at 400 x 300 (a run's averaged checkpoint) renders in 2.9-3.0 s against
+    3.3-3.4 s with 4,096 rays (32,768: 2.7-3.0), three lego_200 views at 200² in 1.70-1.79 s against 2.08-2.18 (65,536:
+    1.63-1.86); the same pixels (within 6e-8). A GPU gains more from fewer, larger launches."""
+
     def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
         super().__init__()
         self.cfg, self.info = cfg, info

@@ -44,8 +44,8 @@ class RenderConfig:
     """Resolution factor of the frames relative to the cameras."""
     max_size: int = 400
     """Longer side of the frames in pixels at most (after ``scale``; not applied to ``size`` nor to a file's size)."""
-    chunk: int = 4096
-    """Rays per forward pass (bounds memory)."""
+    chunk: "int | None" = None
+    """Rays per forward pass (bounds memory; None: the model's ``render_chunk``)."""
     supersample: int = 1
     """Rays per pixel side, each pixel the mean over its area (:func:`~nerfpipe.outputs.render.render_cameras`): 2
     smooths the speckle and stair-steps a field learnt from larger photographs shows in small frames, at 4x the time
@@ -68,7 +68,7 @@ class RenderConfig:
             raise NerfpipeError(f"unknown --path '{self.path}' (test, orbit or a camera_path.json file)")
         refuse_unless((
             ("frames", 1 <= self.frames <= 10_000, "between 1 and 10000", self.frames), ("scale", 0 < self.scale <= 16, "a positive factor (at most 16)", self.scale),
-            ("chunk", self.chunk >= 1, "at least 1", self.chunk), ("fps", 0 < self.fps <= 240, "in (0, 240]", self.fps),
+            ("chunk", self.chunk is None or self.chunk >= 1, "at least 1", self.chunk), ("fps", 0 < self.fps <= 240, "in (0, 240]", self.fps),
             ("max_size", self.max_size >= 1, "at least 1", self.max_size), ("min_frames", self.min_frames >= 1, "at least 1", self.min_frames),
             ("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share),
             ("last_share", 0 < self.last_share <= 1, "in (0, 1]", self.last_share),

@@ -33,13 +33,15 @@ class RenderedView:
         return self.depth / self.acc.clamp(min=1e-6)
 
 
-def render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: int = 4096) -> "tuple[Tensor, Tensor, Tensor]":
-    """Render a flat batch of rays in chunks; returns ``(rgb [N,3], depth [N], acc [N])``."""
+def render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: "int | None" = None) -> "tuple[Tensor, Tensor, Tensor]":
+    """Render a flat batch of rays in chunks (None: the model's :attr:`~nerfpipe.models.base.Model.render_chunk`);
+    returns ``(rgb [N,3], depth [N], acc [N])``."""
     return _render_rays(model, rays, background, chunk)[:3]
 
 
-def _render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: int) -> "tuple[Tensor, Tensor, Tensor, Tensor | None]":
+def _render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], chunk: "int | None") -> "tuple[Tensor, Tensor, Tensor, Tensor | None]":
     """:func:`render_rays` plus the stop depth (None when the model does not give it)."""
+    chunk = chunk or getattr(model, "render_chunk", Model.render_chunk)
     out = {"rgb": [], "depth": [], "acc": [], "stop_depth": []}
     for start in range(0, len(rays), chunk):
         part = rays[start : start + chunk]
@@ -52,14 +54,14 @@ def _render_rays(model: Model, rays: RayBundle, background: Float[Tensor, "3"], 
 
 @torch.no_grad()
 def render_cameras(
-    model: Model, cameras: Cameras, chunk: int = 4096, background: "Float[Tensor, '3'] | None" = None, supersample: int = 1
+    model: Model, cameras: Cameras, chunk: "int | None" = None, background: "Float[Tensor, '3'] | None" = None, supersample: int = 1
 ) -> "list[RenderedView]":
     """Render every camera of a flat batch (sizes may differ), model in eval mode.
 
     Args:
         model: any :class:`~nerfpipe.models.base.Model`.
         cameras: ``[num_cams]`` cameras on the model's device.
-        chunk: rays per forward pass (bounds memory).
+        chunk: rays per forward pass (bounds memory; None: the model's ``render_chunk``).
         background: colour behind the volume (default black).
         supersample: ``k``: each pixel is the mean of ``k x k`` rays spread evenly over its area (a camera's
             pixel integrates its area; one ray through its centre aliases detail finer than the pixel, as a

@@ -134,7 +134,7 @@ def eval_views(scene, num_views: int = 0) -> "list[int]":
     return idx[:num_views] if num_views else idx
 
 
-def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: int, whole: bool = True) -> "tuple[float, torch.Tensor] | None":
+def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: "int | None", whole: bool = True) -> "tuple[float, torch.Tensor] | None":
     """A held-out view rendered with the appearance the model fits to its left half
     (:meth:`~nerfpipe.models.base.Model.fitted_appearance`: NeRF-W's protocol for held-out views of photo
     collections): the PSNR of its right half and the render, ``[H, W, 3]`` with ``whole`` (the left half included, for
@@ -153,7 +153,7 @@ def appearance_fitted_view(model, rays, gt: torch.Tensor, background, chunk: int
     return psnr_from_mse(float(((rgb[:, rgb.shape[1] - (width - half):] - gt[:, half:]) ** 2).mean())), rgb
 
 
-def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: int, keep_first: bool = False,
+def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", background, device: str, chunk: "int | None", keep_first: bool = False,
                 deadline: "float | None" = None, lpips=None, progress: bool = False, fit_appearance: bool = False, supersample: int = 1,
                 on_view: "Callable[[int, RenderedView, torch.Tensor], None] | None" = None) -> dict:
     """Render views ``idx`` at ``sizes`` (w, h) and score them against the ground truth on ``background``;

@@ -180,8 +180,8 @@ class TrainerConfig:
     captures, whose photographs show the surroundings; else black: :func:`nerfpipe.data.background.backgrounds`)."""
     checkpoint_every: int = 500
     """Write checkpoint.safetensors every this many iterations (and always at the end)."""
-    chunk: int = 4096
-    """Rays per forward pass when rendering whole images."""
+    chunk: "int | None" = None
+    """Rays per forward pass when rendering whole images (None: the model's ``render_chunk``, 16,384 for ``fast``)."""
     video_frames: int = 60
     """Frames of the orbit/test-path videos written at the end (0: no videos)."""
     video_scale: float = 1.0
@@ -210,7 +210,7 @@ class TrainerConfig:
             ("iters", self.iters is None or self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step is None or 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"None or between 1 and {MAX_RAYS_PER_STEP}"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
             ("error_sampling", 0 <= self.error_sampling <= 1, "between 0 and 1"), ("error_tiles", self.error_tiles >= 1, "at least 1"),
-            ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk >= 1, "at least 1"),
+            ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk is None or self.chunk >= 1, "at least 1"),
             ("train_budget", self.train_budget is None or self.train_budget >= 0, "0 or more seconds"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
             ("checkpoint_every", self.checkpoint_every >= 0, "0 or more"), ("video_frames", 0 <= self.video_frames <= 10_000, "between 0 and 10000"),
