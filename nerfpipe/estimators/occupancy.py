@@ -319,12 +319,12 @@ class OccupancyGrid(nn.Module):
         start = (lim.origins + lim.t0[:, None] * lim.directions - self.aabb[0]) * scale
         stride = lim.directions * (h * scale)
         half = (j + 0.5).to(lim.t0.dtype)[None, :, None]
+        exact = start.dtype == torch.float64 or (start.dtype == torch.float32 and rc**3 <= 1 << 24)  # the cells' rows as floats hold them exactly
         j_first, j_last, hit_any = [], [], []
         for s in range(0, len(n), max(1, chunk // n_max)):
             rows = slice(s, s + max(1, chunk // n_max))
             q = torch.addcmul(start[rows, None, :], half, stride[rows, None, :]).floor_().nan_to_num_(0.0).clamp_(0, rc - 1)
-            if rc**3 > 1 << 24 or q.dtype != torch.float32:  # rows a float32 would not hold exactly
-                q = q.long()
+            q = q if exact else q.long()
             cells = (q[..., 0] * rc + q[..., 1]).mul_(rc).add_(q[..., 2]).long()
             hit = coarse[cells] & (j < n[rows, None])  # points outside the box count in the nearest coarse cell
             first = torch.where(hit, j, n_max).amin(dim=1)  # the first and last hit (none: 0 and n_max - 1, unused)
