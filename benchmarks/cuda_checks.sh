@@ -8,7 +8,7 @@
 #
 # LEGO_NPZ: ../shared/data/lego_200x200/lego_200x200.npz (or a copy); BLENDER_LEGO_DIR: ../shared/data/blender_lego.
 # Run it where torch sees CUDA and nerfpipe is installed (pip install -e .); benchmarks/gpu_bundle.sh prepares both
-# for the device tool. EAGER=1 adds the blender bench with eager steps (--cuda-graph False) for comparison.
+# for the device tool. EAGER=1 adds eager steps to the step profile and the blender bench with eager steps (--cuda-graph False).
 set -o pipefail
 LEGO=${1:?lego_200x200.npz}
 BLENDER=${2:?blender_lego folder}
@@ -26,9 +26,9 @@ nvidia-smi -L
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 echo "== every CUDA test (-m requires_cuda)"
 timeout 150 python3 -m pytest -q -n 8 -p no:cacheprovider -W ignore --tb=short -m requires_cuda tests 2>&1 | tail -25
-echo "== step profile: eager (fixed shapes) against the CUDA graph"
-timeout 100 python3 -m benchmarks.step_profile "$LEGO" --device cuda --rays 4096 16384 --modes fixed graph --warm 400 --steps 50 \
-    --profiled-steps 8 2>&1 | grep "^{"
+echo "== step profile: the CUDA graph with the rays cached on the device and generated per batch (EAGER=1: eager steps too)"
+timeout 100 python3 -m benchmarks.step_profile "$LEGO" --device cuda --rays 4096 16384 --modes graph ${EAGER:+fixed} --cache-rays True False \
+    --warm 400 --steps 50 --profiled-steps 8 2>&1 | grep "^{"
 bench blender_graph 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5
 bench lego_graph_4096 100 "$LEGO" --presets fast-small --budgets 10 20 60 --eval-views 0 --rays-per-step 4096
 [ -n "${EAGER:-}" ] && bench blender_eager 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5 --cuda-graph False

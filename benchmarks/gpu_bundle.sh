@@ -6,7 +6,8 @@
 #
 #   bash benchmarks/gpu_bundle.sh [DATA]        # DATA: ../shared/data by default
 #
-# Then, through the device tool: run `bash .gpu/run.sh` with carry [".whl", ".gpu"] (about 4 minutes on an H200).
+# Then, through the device tool: run `bash .gpu/run.sh` with carry [".whl", ".gpu"] (about 4 minutes on an H200; `E2E= bash
+# .gpu/run.sh` leaves out the synthetic scene's chain).
 # The machine's image has torch, triton, numpy, imageio, safetensors, rich, jaxtyping, matplotlib, scipy and
 # scikit-image, but not open3d, pymeshlab, pycolmap or imageio-ffmpeg: the chain of the synthetic scene runs there
 # without its render and mesh stages.
@@ -43,7 +44,7 @@ generate(Path('.gpu/synth'), SynthConfig(layout='blender', views=48, seed=0), ov
 cat >.gpu/setup.sh <<'SH'
 # sourced on the device machine from the repo root: the carried wheels into /tmp/site
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || return 1
-export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH PYTHONUNBUFFERED=1
+export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH PYTHONUNBUFFERED=1 NERFPIPE_DATA=$PWD/.gpu  # the tests' lego_200x200
 SH
 cat >.gpu/run.sh <<'SH'
 #!/usr/bin/env bash
@@ -51,6 +52,7 @@ cat >.gpu/run.sh <<'SH'
 cd "$(dirname "$0")/.." || exit 1
 source .gpu/setup.sh || { echo setup failed; exit 1; }
 bash benchmarks/cuda_checks.sh .gpu/lego_200x200/lego_200x200.npz .gpu/blender_lego 2>&1 | tee "$OUT/checks.log"
+[ -n "${E2E-1}" ] || exit 0  # E2E= bash .gpu/run.sh: the checks only
 echo "== nerfpipe run of the synthetic scene (load, check, train), --time-budget 60"
 S0=$SECONDS
 timeout 90 nerfpipe run .gpu/synth --out /tmp/e2e --time-budget 60 --stages load,check,train \

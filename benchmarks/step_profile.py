@@ -14,6 +14,7 @@ if __name__ == "__main__":  # run as a program: the CLI's process settings, befo
 
     runtime.apply()
 
+import itertools
 import json
 import os
 import tempfile
@@ -47,6 +48,8 @@ class StepProfileConfig:
     """Steps timed."""
     profiled_steps: int = 10
     """Steps under the profiler (CUDA only; 0: none)."""
+    cache_rays: "tuple[bool, ...]" = ()
+    """Each value of ``TrainerConfig.cache_rays`` to profile (default: the trainer's own choice only)."""
     device: str = "auto"
     threads: int = 2
     seed: int = 0
@@ -67,37 +70,37 @@ def main(cfg: StepProfileConfig) -> "list[dict]":
     torch.set_num_threads(cfg.threads)
     scene = load(cfg.data)
     rows = []
-    for mode in cfg.modes:
-        for rays in cfg.rays:
-            model = model_config(cfg.preset, cfg.options + (f"fixed_shapes={mode != 'rounds'}",))
-            tcfg = TrainerConfig(iters=10**9, rays_per_step=rays, eval_every=0, checkpoint_every=0, video_frames=0,
-                                 write_outputs=False, device=device, seed=cfg.seed, cuda_graph=mode == "graph")
-            trainer = Trainer(tcfg, scene, "fast", model, Path(tempfile.mkdtemp()))
-            trainer.model.train()
-            if cuda:
-                torch.cuda.reset_peak_memory_stats(device)
-            w0 = time.perf_counter()
-            while trainer.step < cfg.warm:
-                trainer.train_step()
-            sync()
-            w1 = time.perf_counter()
-            for _ in range(cfg.steps):
-                trainer.train_step()
-            sync()
-            row = {"mode": mode, "rays": rays, "device": device, "warm_steps": cfg.warm, "warm_s": w1 - w0,
-                   "ms_per_step": 1000 * (time.perf_counter() - w1) / max(cfg.steps, 1),
-                   "samples_per_ray": float(trainer.model.stats().get("samples_per_ray", 0.0)), "load": os.getloadavg()[0]}
-            if trainer.graph is not None:
-                row.update(trainer.graph.stats(), graph_failed=trainer.graph.failed)
-            if cuda:
-                row["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-                if cfg.profiled_steps:
-                    row.update(gpu_profile(trainer.train_step, cfg.profiled_steps, device, cfg.tables))
-            print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
-            rows.append(row)
-            del trainer
-            if cuda:
-                torch.cuda.empty_cache()
+    for mode, cache, rays in itertools.product(cfg.modes, cfg.cache_rays or (None,), cfg.rays):
+        model = model_config(cfg.preset, cfg.options + (f"fixed_shapes={mode != 'rounds'}",))
+        tcfg = TrainerConfig(iters=10**9, rays_per_step=rays, eval_every=0, checkpoint_every=0, video_frames=0,
+                             write_outputs=False, device=device, seed=cfg.seed, cuda_graph=mode == "graph",
+                             cache_rays=cache)
+        trainer = Trainer(tcfg, scene, "fast", model, Path(tempfile.mkdtemp()))
+        trainer.model.train()
+        if cuda:
+            torch.cuda.reset_peak_memory_stats(device)
+        w0 = time.perf_counter()
+        while trainer.step < cfg.warm:
+            trainer.train_step()
+        sync()
+        w1 = time.perf_counter()
+        for _ in range(cfg.steps):
+            trainer.train_step()
+        sync()
+        row = {"mode": mode, "cache_rays": trainer.sampler.cached is not None, "rays": rays, "device": device, "warm_steps": cfg.warm, "warm_s": w1 - w0,
+               "ms_per_step": 1000 * (time.perf_counter() - w1) / max(cfg.steps, 1),
+               "samples_per_ray": float(trainer.model.stats().get("samples_per_ray", 0.0)), "load": os.getloadavg()[0]}
+        if trainer.graph is not None:
+            row.update(trainer.graph.stats(), graph_failed=trainer.graph.failed)
+        if cuda:
+            row["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+            if cfg.profiled_steps:
+                row.update(gpu_profile(trainer.train_step, cfg.profiled_steps, device, cfg.tables))
+        print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+        rows.append(row)
+        del trainer
+        if cuda:
+            torch.cuda.empty_cache()
     append_log(cfg.log, rows)
     return rows
 

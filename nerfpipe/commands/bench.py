@@ -14,6 +14,7 @@ def bench(
     eval_scale: float = 1.0,
     rays_per_step: "int | None" = None,
     cuda_graph: "bool | None" = None,
+    cache_rays: "bool | None" = None,
     threads: int = 2,
     clock: str = "wall",
     seed: int = 0,
@@ -30,6 +31,7 @@ def bench(
         eval_scale: resolution factor of the validation renders.
         rays_per_step: override every preset's rays per iteration.
         cuda_graph: replay each training step as a CUDA graph (default: on CUDA; False: launch its kernels one by one).
+        cache_rays: keep every training pixel's ray on the device (default: on CUDA where they fit; False: generated per batch).
         threads: torch CPU threads.
         clock: wall (seconds) or cpu (process CPU seconds / threads, fairer on a busy machine).
         seed: random seed.
@@ -40,6 +42,6 @@ def bench(
 
     cfg = BenchConfig(budgets=tuple(budgets), presets=tuple(presets), eval_views=eval_views, eval_scale=eval_scale,
                       threads=threads, clock=clock, seed=seed, device=announce(device), rays_per_step=rays_per_step,
-                      cuda_graph=cuda_graph)
+                      cuda_graph=cuda_graph, cache_rays=cache_rays)
     run(path, out, cfg)
     return 0

@@ -84,6 +84,8 @@ class BenchConfig:
     """Override every preset's rays per step."""
     cuda_graph: "bool | None" = None
     """Replay each training step as a CUDA graph (``TrainerConfig.cuda_graph``; None: on CUDA)."""
+    cache_rays: "bool | None" = None
+    """Keep every training pixel's ray on the device (``TrainerConfig.cache_rays``; None: on CUDA where they fit)."""
 
     def __post_init__(self) -> None:
         from nerfpipe.util.devices import check_device
@@ -124,7 +126,7 @@ def _trainer(scene, name: str, cfg: BenchConfig, out: Path):
         over = dict(over, rays_per_step=cfg.rays_per_step)
     tcfg = TrainerConfig(
         iters=10**9, eval_every=0, video_frames=0, checkpoint_every=0, seed=cfg.seed, device=cfg.device,
-        eval_scale=cfg.eval_scale, cuda_graph=cfg.cuda_graph, **over,
+        eval_scale=cfg.eval_scale, cuda_graph=cfg.cuda_graph, cache_rays=cfg.cache_rays, **over,
     )
     return Trainer(tcfg, scene, model_name, model_cfg, out / name.replace(":", "__").replace(",", "_"))
 

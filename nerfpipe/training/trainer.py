@@ -193,6 +193,10 @@ class TrainerConfig:
     (:mod:`nerfpipe.training.cuda_graph`: the host launches one graph instead of hundreds of kernels; models whose
     step reads values back, e.g. the fast model's rounds of early termination, step eagerly anyway). Default: on
     CUDA; ignored elsewhere and under torchrun."""
+    cache_rays: "bool | None" = None
+    """Generate every training pixel's ray once and keep them on the device with the pixels, so that a batch is one
+    upload of its pixel indices and a few gathers (:class:`~nerfpipe.training.pixel_sampler.PixelSampler`); default:
+    on CUDA where they fit (40 bytes a pixel, at most 4 GiB and a quarter of the free memory)."""
     write_outputs: bool = True
     """Write psnr.png, progress.png, cameras.png and the videos at the end (metrics.json and the checkpoint always)."""
 
@@ -383,7 +387,8 @@ class Trainer:
         self.rays = share(cfg.rays_per_step, self.world)
         """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
-                                    max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles)
+                                    max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles,
+                                    cache_rays=cfg.cache_rays)
         self.sync: "distributed.BufferSync | None" = None
         use_graph = cfg.cuda_graph is not False and torch.device(cfg.device).type == "cuda" and not self.world.active
         self.graph = GraphedStep(self.model, self.optimizer, self.forward_backward) if use_graph else None
