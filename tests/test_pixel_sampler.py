@@ -16,7 +16,7 @@ def _same_batches(scene, device, **kwargs):
         assert torch.equal(a.rays.cam_idx, b.rays.cam_idx)
         for x, y in [(a.rays.origins, b.rays.origins), (a.rays.directions, b.rays.directions),
                      (a.rays.z_scale, b.rays.z_scale), (a.rgb, b.rgb), (a.background.expand_as(a.rgb), b.background.expand_as(b.rgb))]:
-            assert x.device == y.device == torch.device(device) and x.shape == y.shape
+            assert x.device.type == y.device.type == torch.device(device).type and x.shape == y.shape
             torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
         if a.depth is not None:
             torch.testing.assert_close(a.depth, b.depth, equal_nan=True)

@@ -1052,7 +1052,7 @@ class FastModel(Model):
                         continue  # hashed: the lattice of the first box, never resampled
                     src = state_dict.get(f"{prefix}field.{name}.tables.{i}")
                     if src is not None and src.shape != table.shape:
-                        table.data = torch.empty_like(src)
+                        table.data = torch.empty_like(src, device=table.device)  # the checkpoint is read on the CPU
                     grid.resolutions[i] = resolutions[i]
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
         self.field.active_levels = int(self.active_levels)
