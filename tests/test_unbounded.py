@@ -264,6 +264,24 @@ def test_depth_loss_rewards_stopping_at_the_point_and_punishes_fog():
     assert float(model._depth_loss(extras, none)) == 0.0  # no ray with a point: nothing to ask
 
 
+def test_depth_loss_leaves_a_margin_in_front_of_the_window():
+    """Weight between the window and ``depth_front_margin`` windows in front of the point (a surface a sparse point
+    lies a little behind) costs only the window's miss; weight further in front costs as free space too."""
+    model = _model(background_field=False)
+    eps = model.cfg.depth_tolerance * float((model.object_box[1] - model.object_box[0]).norm())
+    margin = model.cfg.depth_front_margin
+    assert margin > 1
+    target = torch.tensor([3.0])
+
+    def loss(at: float) -> float:  # all of the ray's weight at distance ``at``
+        extras = dict(weights=torch.ones(1), t_mids=torch.tensor([at]), ray_indices=torch.zeros(1, dtype=torch.long), t_exit=torch.full((1,), 4.0))
+        return float(model._depth_loss(extras, target))
+
+    assert loss(3.0) == 0.0
+    assert loss(3.0 - (1 + margin) / 2 * eps) == 1.0  # inside the margin: the window missed, no free space broken
+    assert loss(3.0 - 1.5 * margin * eps) == 2.0  # in front of the margin: both
+
+
 def test_depth_loss_and_the_field_behind_the_box_read_nothing_back_from_the_device():
     """Issue 13: the real-capture terms of a training step add no host sync (no branch on a tensor, no boolean
     index, no box size read back every step), forward and backward."""
