@@ -19,7 +19,7 @@ from nerfpipe.data.background import background_colors, composite_pixels
 from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.rays import RayBundle, generate_rays
 from nerfpipe.data.scene import SceneData
-from nerfpipe.util.typing import Float, Tensor, UInt8
+from nerfpipe.util.typing import Float, Int, Tensor, UInt8
 
 
 def load_split_pixels(scene: SceneData, split: str, cameras: "Cameras | None" = None) -> "tuple[Tensor, Tensor]":
@@ -239,18 +239,15 @@ class PixelSampler:
             picked, tiles = self.errors.draw(n, generator)
             idx = torch.cat([picked, idx[n:]])
         if self.cached is None or self.errors is not None:
-            cam = torch.searchsorted(self.offsets, idx, right=True) - 1
-            local = idx - self.offsets[cam]
-            width = self.widths[cam]
-            col, row = local % width, local // width
+            cam, col, row = self._pixel_coords(idx)
             if self.errors is not None:
                 self.last_tiles = torch.cat([tiles, self.errors.tiles_of(cam[n:], col[n:], row[n:])])
         bg = background_colors(self.background, num_rays, generator)
         if self.cached is not None:  # one upload of the indices, three gathers on the device
             table, pixels, offsets = self.cached
             idx = self._upload(idx)
-            row = table[idx]
-            rays = RayBundle(origins=row[:, :3], directions=row[:, 3:6], z_scale=row[:, 6],
+            ray = table[idx]
+            rays = RayBundle(origins=ray[:, :3], directions=ray[:, 3:6], z_scale=ray[:, 6],
                              cam_idx=torch.searchsorted(offsets, idx, right=True) - 1)
             bg = self._upload(bg) if self.background == "random" else background_colors(self.background, num_rays, device=self.device)
             return PixelBatch(rays=rays, rgb=composite_pixels(pixels[idx], bg), background=bg)
@@ -259,6 +256,13 @@ class PixelSampler:
         rays = generate_rays(self.cameras, self._upload(cam), self._upload(uv), self._models)
         return PixelBatch(rays=rays, rgb=self._upload(rgb), background=self._upload(bg))
 
+    def _pixel_coords(self, idx: Int[Tensor, "n"]) -> "tuple[Tensor, Tensor, Tensor]":
+        """The image, column and row of flat pixel indices (on the host)."""
+        cam = torch.searchsorted(self.offsets, idx, right=True) - 1
+        local = idx - self.offsets[cam]
+        width = self.widths[cam]
+        return cam, local % width, local // width
+
     def _cache(self, chunk: int = 1 << 18) -> "tuple[Tensor, Tensor, Tensor]":
         """Every pixel's ray as one ``[P, 7]`` table on the device (what :meth:`_uniform` would generate for it), the
         pixels and the offsets there too: a batch is then one upload of its pixel indices and three gathers instead of
@@ -266,13 +270,11 @@ class PixelSampler:
         3.7 ms host step; session 34's profile on an H200)."""
         table = torch.empty(self.num_pixels, _RAY_FLOATS, device=self.device)
         for start in range(0, self.num_pixels, chunk):
-            idx = torch.arange(start, min(start + chunk, self.num_pixels))
-            cam = torch.searchsorted(self.offsets, idx, right=True) - 1
-            local = idx - self.offsets[cam]
-            width = self.widths[cam]
-            uv = torch.stack([local % width, local // width], dim=-1).float() + 0.5
+            end = min(start + chunk, self.num_pixels)
+            cam, col, row = self._pixel_coords(torch.arange(start, end))
+            uv = torch.stack([col, row], dim=-1).float() + 0.5
             rays = generate_rays(self.cameras, cam.to(self.device), uv.to(self.device), self._models)
-            table[start : start + len(idx)] = torch.cat([rays.origins, rays.directions, rays.z_scale[:, None]], -1)
+            table[start:end] = torch.cat([rays.origins, rays.directions, rays.z_scale[:, None]], -1)
         return table, self.pixels.to(self.device), self.offsets.to(self.device)
 
     def _upload(self, t: Tensor) -> Tensor:
