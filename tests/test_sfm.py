@@ -315,6 +315,27 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
     assert seen == {"images": tmp_path / "size640" / "grouped", "matches_from": tmp_path / "size640" / "database.db", "min_inliers": [60, 50]}
 
 
+def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
+    """Under a budget too short for the fold test, the reconstruction is kept untested and the user is told so (a
+    23-photo folder of colmap_mouse at ``--time-budget 180`` kept a fold silently: session 40)."""
+    import logging
+
+    from nerfpipe.plugins import sfm
+
+    monkeypatch.setattr(sfm, "reconstruct", lambda *a, **k: pytest.fail("the strict mapping ran without time for it"))
+    chosen = object(), tmp_path / "images"
+    with caplog.at_level(logging.WARNING, logger="test"):
+        rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"))
+    assert (rec, images) == chosen and record == {"skipped": "too little time left"}
+    assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="test"):  # time enough: the test runs (here: its mapping finds nothing)
+        monkeypatch.setattr(sfm, "reconstruct", lambda *a, **k: (_ for _ in ()).throw(sfm.NerfpipeError("none", tmp_path)))
+        monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+        assert sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 1000.0, logging.getLogger("test"))[2] == {"registered": 0}
+    assert not caplog.records
+
+
 class _Counted:
     """A stand-in reconstruction for ``strict_check``'s tests: only its count of registered photos."""
 

@@ -614,6 +614,9 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     20.13 dB. Returns the one kept, its images folder and what was decided."""
     rec, images = chosen
     if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * STRICT_FIT_SECONDS:
+        log.warning("sfm: no reconstruction at another image size agrees with the one kept, and the time budget leaves too "
+                    "little (%.0f s) to test it for a fold: its poses may fold part of the capture (look at "
+                    "mesh/mesh_views.png; a run with a larger --time-budget tests it)", time_left)
         return rec, images, {"skipped": "too little time left"}
     strict_work = work / "strict"
     strict, threshold, source, registered = None, 0, images.parent, set(model_rotations(rec))
