@@ -321,6 +321,7 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     import logging
 
     from nerfpipe.plugins import sfm
+    from nerfpipe.util.errors import NerfpipeError
 
     monkeypatch.setattr(sfm, "reconstruct", lambda *a, **k: pytest.fail("the strict mapping ran without time for it"))
     chosen = object(), tmp_path / "images"
@@ -329,9 +330,13 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     assert (rec, images) == chosen and record == {"skipped": "too little time left"}
     assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
     caplog.clear()
+
+    def no_reconstruction(*args, **kwargs):
+        raise NerfpipeError("no reconstruction", tmp_path)
+
+    monkeypatch.setattr(sfm, "reconstruct", no_reconstruction)
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
     with caplog.at_level(logging.WARNING, logger="test"):  # time enough: the test runs (here: its mapping finds nothing)
-        monkeypatch.setattr(sfm, "reconstruct", lambda *a, **k: (_ for _ in ()).throw(sfm.NerfpipeError("none", tmp_path)))
-        monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
         assert sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 1000.0, logging.getLogger("test"))[2] == {"registered": 0}
     assert not caplog.records
 
