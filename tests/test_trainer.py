@@ -159,6 +159,28 @@ def test_training_leaves_the_supersampled_final_evaluation_its_time_past_supersa
     assert t.training_window() == pytest.approx((1 - FINAL_SHARE) * 100.0)
 
 
+@pytest.mark.parametrize("elapsed, plan, window", [(10.0, "generous", 20.0), (50.0, "now", 50.0), (70.0, "none", 75.0)])
+def test_past_the_plateau_training_stops_for_the_supersampled_evaluation_only_where_it_is_affordable(tiny_scene, tmp_path, monkeypatch,
+                                                                                                    elapsed, plan, window):
+    """Decided once, at the first window past ``supersample_from``: the generous reserve where the time left affords it,
+    a stop at once where only the evaluation's own cost fits, else the window of one ray per pixel (no stop for a
+    supersampled evaluation that could not run then)."""
+    from nerfpipe.training.evaluation import AVERAGED_RENDER_FACTOR, FINAL_SHARE, final_eval_need
+
+    t = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2, supersample_from=10, average=True), tiny_scene, "vanilla", MODEL, tmp_path)
+    t.seconds_per_pixel = 1.0
+    t.seconds_per_pixel = 10.0 / final_eval_need(t)  # one ray per pixel 10 s; 2 x 2 rays 40 s at the validations' cost
+    assert final_eval_need(t, supersample=True) == pytest.approx(AVERAGED_RENDER_FACTOR * 40.0) and AVERAGED_RENDER_FACTOR == 2.0
+    assert (1 - FINAL_SHARE) * 100.0 == pytest.approx(75.0)  # the window of one ray per pixel
+    clock = {"now": elapsed}
+    monkeypatch.setattr(t, "wall_elapsed", lambda: clock["now"])
+    assert t.training_window() == pytest.approx(75.0) and t.supersample_plan is None  # before the plateau
+    t.step = 10
+    assert t.training_window() == pytest.approx(window) and t.supersample_plan == (plan, elapsed)
+    clock["now"] = elapsed + 5.0  # decided once: the window does not move with the clock
+    assert t.training_window() == pytest.approx(window) and t.supersample_plan == (plan, elapsed)
+
+
 def test_the_supersampled_final_evaluation_of_averaged_parameters_is_reserved_more(tiny_scene, tmp_path):
     """The final evaluation renders the averaged parameters (the occupancy grid refreshed in full), slower per ray than
     the validations during training: the window reserves AVERAGED_RENDER_FACTOR times more for its 2 x 2 rays."""

@@ -370,11 +370,11 @@ def _final_share(cfg) -> float:
     return EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE
 
 
-def final_eval_need(trainer, supersample: bool = False) -> "float | None":
+def final_eval_need(trainer, supersample: bool = False, averaged_factor: float = AVERAGED_RENDER_FACTOR) -> "float | None":
     """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
     per pixel, or with ``supersample`` as many as the final evaluation would use (``eval_supersample`` at most, where
     views are scored smaller than their photographs), from the latest validation's time per ray, :data:`FINAL_MARGIN`
-    times over (the supersampled one :data:`AVERAGED_RENDER_FACTOR` times more where the parameters are averaged); None
+    times over (the supersampled one ``averaged_factor`` times more where the parameters are averaged); None
     before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on
     colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut training from 878
     to 600 steps."""
@@ -387,7 +387,7 @@ def final_eval_need(trainer, supersample: bool = False) -> "float | None":
         cams = scene.cameras[torch.tensor(idx, dtype=torch.long)]
         trainer.final_eval_rays = (sum(w * h for w, h in sizes),
                                    sum(w * h * view_supersample(cams, i, (w, h), cfg.eval_supersample) ** 2 for i, (w, h) in enumerate(sizes)))
-    factor = AVERAGED_RENDER_FACTOR if supersample and trainer.average is not None else 1.0
+    factor = averaged_factor if supersample and trainer.average is not None else 1.0
     return factor * FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
 
 
@@ -498,6 +498,7 @@ def finish(trainer) -> dict:
     if cfg.time_budget is not None:
         metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE if trainer.stopping_window is None or not cfg.time_budget else 1 - trainer.stopping_window / cfg.time_budget,
                                   "training_stopped_at": trainer.training_stopped_at,
+                                  **({"supersample_plan": trainer.supersample_plan[0]} if trainer.supersample_plan else {}),
                                   "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
     write_json(out / "metrics.json", metrics)
     write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})

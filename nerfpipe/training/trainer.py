@@ -408,6 +408,9 @@ class Trainer:
         self.seconds_per_pixel: "float | None" = None  # per ray of the latest validation render
         self.final_eval_rays: "tuple[int, int] | None" = None  # rays of the final evaluation of every view, one per pixel and supersampled (counted once)
         self.stopping_window: "float | None" = None  # the training window when training stopped
+        self.supersample_plan: "tuple[str, float] | None" = None
+        """Past ``supersample_from``: what the window leaves the supersampled final evaluation and the wall seconds when
+        that was decided (:meth:`_supersample_reserve`); None before."""
         self.validation_seconds = 0.0  # rendering for validations so far
         self.training_stopped_at: "float | None" = None  # wall seconds after start
         self.final_started_at: "float | None" = None  # after the final checkpoint
@@ -557,8 +560,27 @@ class Trainer:
         if need is not None and need <= FINAL_MAX_SHARE * budget:  # else no share fits every view
             reserve = max(reserve, need)
         if need is not None and 0 < self.supersample_from <= self.step:  # past the plateau: anti-aliased scores pay more than steps
-            reserve = max(reserve, final_eval_need(self, supersample=True))
+            reserve = max(reserve, self._supersample_reserve(budget))
         return budget - reserve
+
+    def _supersample_reserve(self, budget: float) -> float:
+        """What the window leaves the supersampled final evaluation past ``supersample_from``, decided at the first
+        window there (:attr:`supersample_plan`): ``generous``, :func:`~nerfpipe.training.evaluation.final_eval_need`'s
+        reserve (:data:`~nerfpipe.training.evaluation.AVERAGED_RENDER_FACTOR` over) where the time left affords it;
+        ``now`` (training stops at once) where it affords only the evaluation's measured cost (averaged parameters'
+        rays as dear as the validations'); ``none`` where not even that: training goes on to the window of one ray per
+        pixel, and the final evaluation's probe decides. ``nerfpipe run colmap_mouse --time-budget 300`` on a slow hour
+        reached the plateau at 182 s of its 254: the generous reserve (220 s; the 2 x 2 rays took 43 s in another run)
+        stopped training there, and the 72 s left then did not afford the 2 x 2 rays either."""
+        from nerfpipe.training.evaluation import final_eval_need
+
+        generous = final_eval_need(self, supersample=True)
+        if self.supersample_plan is None:
+            elapsed = self.wall_elapsed()
+            least = final_eval_need(self, supersample=True, averaged_factor=1.0)
+            self.supersample_plan = ("generous" if elapsed + generous <= budget else "now" if elapsed + least <= budget else "none", elapsed)
+        plan, decided_at = self.supersample_plan
+        return generous if plan == "generous" else budget - decided_at if plan == "now" else 0.0
 
     def done(self) -> bool:
         budget, window = self.cfg.train_budget, self.training_window()
