@@ -258,6 +258,28 @@ def test_keep_registered_leaves_the_named_photos_and_their_points(scene_path, tm
     assert 0 < rec.num_points3D() < before and all(rec.point3D(i).track.length() >= 2 for i in rec.point3D_ids())
 
 
+def test_keep_consensus_keeps_the_photos_another_reconstruction_places_alike(scene_path, tmp_path):
+    """The sfm stage's fold fallback under a short budget: of a reconstruction whose every fourth photo is turned 80
+    degrees (a folded block), the photos that a rival reconstruction (the right poses, in another world frame) places
+    alike are kept; nothing where all agree or too few would be left."""
+    import pycolmap
+    from scipy.spatial.transform import Rotation
+
+    from nerfpipe.plugins.sfm import CHECK_VIEWS, keep_consensus, model_rotations
+
+    names = sorted(model_rotations(pycolmap.Reconstruction(str(scene_path("colmap_mouse") / "sparse" / "0"))))[::3][:16]  # posed ones
+    folded = pycolmap.Reconstruction(str(_mouse_subset(scene_path, tmp_path / "folded", names, fold=names[1::4]) / "sparse" / "0"))
+    right = model_rotations(pycolmap.Reconstruction(str(_mouse_subset(scene_path, tmp_path / "right", names) / "sparse" / "0")))
+    world = Rotation.from_euler("xyz", [30.0, -50.0, 10.0], degrees=True).as_matrix()
+    rival = {n: r @ world.T for n, r in right.items()}
+    assert keep_consensus(folded, {}) is None and keep_consensus(folded, {640: model_rotations(folded)}) is None  # all alike
+    assert keep_consensus(folded, {640: {n: rival[n] for n in names[:CHECK_VIEWS + 2]}}) is None  # too few to keep
+    assert model_rotations(folded).keys() == set(names)
+    record = keep_consensus(folded, {640: rival, 800: {n: rival[n] for n in names[0::4]}})
+    assert record == {"max_image_size": 640, "kept": 12, "of": 16}
+    assert sorted(model_rotations(folded)) == sorted(set(names) - set(names[1::4])) and folded.num_points3D() > 0
+
+
 MINIATURE_MARGIN = 0.3
 """The margin of these miniature checks (60 steps on 16 small photos): they separate by less than the stage's 400-step
 fits (``STRICT_MARGIN``): the fold +0.44 dB, right poses -2.46 (session 31; after 120 steps +0.57 / -2.87)."""
@@ -329,6 +351,13 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
         rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"))
     assert (rec, images) == chosen and record == {"skipped": "too little time left"}
     assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
+    caplog.clear()
+    kept = {"max_image_size": 640, "kept": 9, "of": 20}
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals: kept if rivals else None)
+    with caplog.at_level(logging.WARNING, logger="test"):  # a rival reconstruction: the photos placed alike, said
+        rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}})
+    assert (rec, images) == chosen and record == {"skipped": "too little time left", "consensus": kept}
+    assert len(caplog.records) == 1 and "9 of its 20 photos" in caplog.records[0].getMessage()
     caplog.clear()
 
     def no_reconstruction(*args, **kwargs):
