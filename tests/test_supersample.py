@@ -86,3 +86,20 @@ def test_render_sequence_supersamples_every_frame_and_records_it():
     for i, view in enumerate(views):
         torch.testing.assert_close(view.rgb, render_cameras(model, cams[i : i + 1], supersample=2)[0].rgb)
         assert not torch.allclose(view.rgb, render_cameras(model, cams[i : i + 1])[0].rgb, atol=0.02)
+
+
+def test_frame_plans_do_not_shrink_a_views_fixed_cost():
+    """A view's appearance fit takes the same time at any size: a plan that shrinks views to fit counts it whole
+    (photos_sacre_coeur's final evaluation, its fit scaled down with the view, was estimated at 18.0 s and took 37.2),
+    and where fewer views are scored than the plan's least, they are as large as then fits."""
+    from nerfpipe.outputs.render import plan_frames
+    from nerfpipe.training.evaluation import _fit
+
+    assert plan_frames(2, 2, 10.0, 100.0, fixed_per_frame=20.0).estimated_seconds == pytest.approx(60.0)  # all fit, whole
+    plan = plan_frames(2, 2, 10.0, 50.0, fixed_per_frame=20.0)  # 60 s at full size: shrink the render, not the fit
+    assert plan.frames == 2 and plan.scale == pytest.approx(0.5**0.5) and plan.estimated_seconds == pytest.approx(50.0)
+    assert plan_frames(4, 1, 10.0, 65.0, fixed_per_frame=20.0).frames == 2  # 30 s a view, whole
+    assert plan_frames(2, 2, 10.0, 10.0, fixed_per_frame=0.0) == plan_frames(2, 2, 10.0, 10.0)  # no fixed cost: as before
+    one = _fit(2, 2, 10.0, 35.0, at_least=1, fixed=30.0)  # two fits do not fit at any size: one view, half its side
+    assert (one.frames, one.scale, one.estimated_seconds) == (1, pytest.approx(0.5**0.5), pytest.approx(35.0))
+    assert _fit(2, 2, 10.0, 10.0, at_least=1, fixed=30.0).frames == 1  # never fewer than at_least

@@ -155,8 +155,10 @@ class FramePlan:
     estimated_seconds: float
 
 
-def plan_frames(frames: int, min_frames: int, seconds_per_frame: float, allowed: "float | None", min_scale: float = 0.25) -> FramePlan:
-    """Views and scale that fit ``allowed`` seconds, from the time one full-size view takes.
+def plan_frames(frames: int, min_frames: int, seconds_per_frame: float, allowed: "float | None", min_scale: float = 0.25,
+                fixed_per_frame: float = 0.0) -> FramePlan:
+    """Views and scale that fit ``allowed`` seconds, from the time one full-size view takes (``seconds_per_frame``,
+    which follows the pixel count, plus ``fixed_per_frame``, which does not: a view's appearance fit).
 
     Without a limit, or when all ``frames`` fit, all of them at full size. Otherwise as many as fit,
     down to ``min_frames``; below that the views shrink (time follows pixel count), to no less than
@@ -167,14 +169,20 @@ def plan_frames(frames: int, min_frames: int, seconds_per_frame: float, allowed:
         (FramePlan(frames=30, scale=1.0, estimated_seconds=30.0), 0.5)
     """
     per = max(seconds_per_frame, 1e-6)
-    if allowed is None or frames * per <= allowed:
-        return FramePlan(frames, 1.0, frames * per)
-    fitting = int(max(allowed, 0.0) // per)
+    full = per + fixed_per_frame
+    if allowed is None or frames * full <= allowed:
+        return FramePlan(frames, 1.0, frames * full)
+    fitting = int(max(allowed, 0.0) // full)
     if fitting >= min_frames:
-        return FramePlan(fitting, 1.0, fitting * per)
+        return FramePlan(fitting, 1.0, fitting * full)
     count = min(min_frames, frames)
-    scale = max(min_scale, min(1.0, (max(allowed, 0.0) / (count * per)) ** 0.5))
-    return FramePlan(count, scale, count * per * scale**2)
+    return FramePlan(count, (scale := shrink(count, per, allowed, min_scale, fixed_per_frame)), count * (fixed_per_frame + per * scale**2))
+
+
+def shrink(count: int, per: float, allowed: float, min_scale: float, fixed: float = 0.0) -> float:
+    """The side's scale at which ``count`` views fit ``allowed`` seconds (``per`` a full view's scalable seconds,
+    ``fixed`` each view's others), within ``[min_scale, 1]``."""
+    return max(min_scale, min(1.0, (max(max(allowed, 0.0) / max(count, 1) - fixed, 0.0) / max(per, 1e-6)) ** 0.5))
 
 
 def to_uint8(image: Float[Tensor, "*bs"]) -> "object":
@@ -182,4 +190,4 @@ def to_uint8(image: Float[Tensor, "*bs"]) -> "object":
     return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
-__all__ = ["FramePlan", "RenderedView", "plan_frames", "render_cameras", "render_rays", "resize_cameras", "supersample_factor", "to_uint8"]
+__all__ = ["FramePlan", "RenderedView", "plan_frames", "render_cameras", "render_rays", "resize_cameras", "shrink", "supersample_factor", "to_uint8"]

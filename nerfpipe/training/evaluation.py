@@ -18,7 +18,7 @@ from nerfpipe.data.background import background_colors, composite_pixels
 from nerfpipe.data.rays import camera_rays
 from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.outputs.colormap import error_strip, stack_rows
-from nerfpipe.outputs.render import FramePlan, RenderedView, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, supersample_factor, to_uint8
+from nerfpipe.outputs.render import FramePlan, RenderedView, capped_size, plan_frames, render_cameras, render_rays, resize_cameras, shrink, supersample_factor, to_uint8
 from nerfpipe.training.checkpoint import CHECKPOINT
 from nerfpipe.training.runs import write_json
 from nerfpipe.util.errors import require
@@ -324,13 +324,15 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
         rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
         fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
         fit_seconds += render if fit_seconds else 0.0  # and the view rendered with it (whole for the picture), one ray per pixel
-    supersample, per_view = 1, render + fit_seconds  # the most rays per pixel with which every view fits at full size, else one
+    fixed = FINAL_MARGIN * max(fit_seconds - render, 0.0)  # the fit's steps on a fixed set of rays do not shrink with the view
+    supersample, scaled = 1, render * (2.0 if fit_seconds else 1.0)  # the most rays per pixel with which every view fits at full size, else one
     for k in range(most, 1, -1):
-        if len(idx) * (render * k**2 + fit_seconds) <= allowed - (time.perf_counter() - start):
-            supersample, per_view = k, render * k**2 + fit_seconds
+        if len(idx) * (render * k**2 + fixed + (render if fit_seconds else 0.0)) <= allowed - (time.perf_counter() - start):
+            supersample, scaled = k, render * k**2 + (render if fit_seconds else 0.0)
             break
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
-    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), per_view, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale)
+    fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), scaled, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale,
+               fixed=fixed)
     psnr, ssim = validate(trainer, fit.frames, fit.scale, deadline=time.monotonic() + allowed - (time.perf_counter() - start), final=True,
                           supersample=supersample)
     views = trainer.history["val"][-1][-1]
@@ -391,14 +393,15 @@ def final_eval_need(trainer, supersample: bool = False, averaged_factor: float =
     return factor * FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
 
 
-def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25) -> FramePlan:
-    """:func:`~nerfpipe.outputs.render.plan_frames`, and when even ``min_count`` smallest views do not fit, as many
-    of those as do (never fewer than ``at_least``)."""
-    fit = plan_frames(count, min_count, per, allowed, min_scale)
+def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25, fixed: float = 0.0) -> FramePlan:
+    """:func:`~nerfpipe.outputs.render.plan_frames` (``fixed``: each view's seconds that do not shrink with it), and when
+    even ``min_count`` smallest views do not fit, as many of those as do (never fewer than ``at_least``), as large as
+    they then fit."""
+    fit = plan_frames(count, min_count, per, allowed, min_scale, fixed_per_frame=fixed)
     if fit.estimated_seconds > allowed:
-        cost = per * fit.scale**2
-        n = max(at_least, min(fit.frames, int(max(allowed, 0.0) // max(cost, 1e-9))))
-        fit = FramePlan(n, fit.scale, n * cost)
+        n = max(at_least, min(fit.frames, int(max(allowed, 0.0) // max(fixed + per * fit.scale**2, 1e-9))))
+        scale = shrink(n, per, allowed, min_scale, fixed) if n else fit.scale
+        fit = FramePlan(n, scale, n * (fixed + per * scale**2))
     return fit
 
 
