@@ -176,7 +176,8 @@ def plan_frames(frames: int, min_frames: int, seconds_per_frame: float, allowed:
     if fitting >= min_frames:
         return FramePlan(fitting, 1.0, fitting * full)
     count = min(min_frames, frames)
-    return FramePlan(count, (scale := shrink(count, per, allowed, min_scale, fixed_per_frame)), count * (fixed_per_frame + per * scale**2))
+    scale = shrink(count, per, allowed, min_scale, fixed_per_frame)
+    return FramePlan(count, scale, count * (fixed_per_frame + per * scale**2))
 
 
 def shrink(count: int, per: float, allowed: float, min_scale: float, fixed: float = 0.0) -> float:

@@ -318,17 +318,17 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     probe_start = time.perf_counter()
     render_cameras(trainer.model, probe, cfg.chunk, bg, supersample=most)  # the rays of the planned supersampling, as many as a view's
     render = (time.perf_counter() - probe_start) / (pw * ph * most**2) * w * h  # one ray per pixel
-    fit_seconds = 0.0  # each view's appearance fit, where the model fits one: its time is the view's too
+    fit_seconds = picture = 0.0  # each view's appearance fit, where the model fits one: its time is the view's too
     if trainer.model.appearance_fit_steps:
         half = max(1, pw // 2)
         rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
         fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
-        fit_seconds += render if fit_seconds else 0.0  # and the view rendered with it (whole for the picture), one ray per pixel
-    fixed = FINAL_MARGIN * max(fit_seconds - render, 0.0)  # the fit's steps on a fixed set of rays do not shrink with the view
-    supersample, scaled = 1, render * (2.0 if fit_seconds else 1.0)  # the most rays per pixel with which every view fits at full size, else one
+        picture = render if fit_seconds else 0.0  # and the view rendered with it (whole for the picture), one ray per pixel
+    fixed = FINAL_MARGIN * fit_seconds  # the fit's steps on a fixed set of rays do not shrink with the view
+    supersample, scaled = 1, render + picture  # the most rays per pixel with which every view fits at full size, else one
     for k in range(most, 1, -1):
-        if len(idx) * (render * k**2 + fixed + (render if fit_seconds else 0.0)) <= allowed - (time.perf_counter() - start):
-            supersample, scaled = k, render * k**2 + (render if fit_seconds else 0.0)
+        if len(idx) * (render * k**2 + picture + fixed) <= allowed - (time.perf_counter() - start):
+            supersample, scaled = k, render * k**2 + picture
             break
     min_scale = min(1.0, max(0.25, SSIM_WINDOW / min(w, h)))
     fit = _fit(len(idx), min(MIN_FINAL_VIEWS, len(idx)), scaled, allowed - (time.perf_counter() - start), at_least=1, min_scale=min_scale,
@@ -338,7 +338,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     views = trainer.history["val"][-1][-1]
     (w, h), = _eval_sizes(scene, idx[:1], cfg, fit.scale)
     plan["final_eval"] = {"views": views, "planned": fit.frames, "of": len(idx), "scale": fit.scale, "size": [w, h], "supersample": supersample,
-                          "appearance_fit_seconds": fit_seconds, "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
+                          "appearance_fit_seconds": fit_seconds + picture, "estimated_seconds": fit.estimated_seconds, "seconds": time.perf_counter() - start}
     return psnr, ssim, views
 
 
