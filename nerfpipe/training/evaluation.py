@@ -372,12 +372,12 @@ def _final_share(cfg) -> float:
     return EVAL_SHARE if cfg.video_frames and cfg.write_outputs else 1 - ENCODE_SHARE
 
 
-def final_eval_need(trainer, supersample: bool = False, averaged_factor: float = AVERAGED_RENDER_FACTOR) -> "float | None":
+def final_eval_need(trainer, supersample: bool = False, averaged_factor: float = AVERAGED_RENDER_FACTOR,
+                    margin: float = FINAL_MARGIN) -> "float | None":
     """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
     per pixel, or with ``supersample`` as many as the final evaluation would use (``eval_supersample`` at most, where
-    views are scored smaller than their photographs), from the latest validation's time per ray, :data:`FINAL_MARGIN`
-    times over (the supersampled one ``averaged_factor`` times more where the parameters are averaged); None
-    before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on
+    views are scored smaller than their photographs), from the latest validation's time per ray, ``margin`` times over
+    (the supersampled one ``averaged_factor`` times more where the parameters are averaged); None before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on
     colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut training from 878
     to 600 steps."""
     if trainer.seconds_per_pixel is None:
@@ -390,7 +390,7 @@ def final_eval_need(trainer, supersample: bool = False, averaged_factor: float =
         trainer.final_eval_rays = (sum(w * h for w, h in sizes),
                                    sum(w * h * view_supersample(cams, i, (w, h), cfg.eval_supersample) ** 2 for i, (w, h) in enumerate(sizes)))
     factor = averaged_factor if supersample and trainer.average is not None else 1.0
-    return factor * FINAL_MARGIN * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
+    return factor * margin * trainer.seconds_per_pixel * trainer.final_eval_rays[int(supersample)] / _final_share(cfg)
 
 
 def _fit(count: int, min_count: int, per: float, allowed: float, at_least: int, min_scale: float = 0.25, fixed: float = 0.0) -> FramePlan:

@@ -568,8 +568,10 @@ class Trainer:
         window there (:attr:`supersample_plan`): ``generous``, :func:`~nerfpipe.training.evaluation.final_eval_need`'s
         reserve (:data:`~nerfpipe.training.evaluation.AVERAGED_RENDER_FACTOR` over) where the time left affords it;
         ``now`` (training stops at once) where it affords only the evaluation's measured cost (averaged parameters'
-        rays as dear as the validations'); ``none`` where not even that: training goes on to the window of one ray per
-        pixel, and the final evaluation's probe decides. ``nerfpipe run colmap_mouse --time-budget 300`` on a slow hour
+        rays as dear as the validations', no margin: the validations' time per ray is already 1.1x over the final
+        evaluation's, and the final evaluation's probe picks one ray per pixel if 2 x 2 do not fit, so a stop that then
+        finds too little time costs only steps past the plateau); ``none`` where not even that: training goes on to the
+        window of one ray per pixel, and the final evaluation's probe decides. ``nerfpipe run colmap_mouse --time-budget 300`` on a slow hour
         reached the plateau at 182 s of its 254: the generous reserve (220 s; the 2 x 2 rays took 43 s in another run)
         stopped training there, and the 72 s left then did not afford the 2 x 2 rays either."""
         from nerfpipe.training.evaluation import final_eval_need
@@ -577,7 +579,7 @@ class Trainer:
         generous = final_eval_need(self, supersample=True)
         if self.supersample_plan is None:
             elapsed = self.wall_elapsed()
-            least = final_eval_need(self, supersample=True, averaged_factor=1.0)
+            least = final_eval_need(self, supersample=True, averaged_factor=1.0, margin=1.0)
             self.supersample_plan = ("generous" if elapsed + generous <= budget else "now" if elapsed + least <= budget else "none", elapsed)
         plan, decided_at = self.supersample_plan
         return generous if plan == "generous" else budget - decided_at if plan == "now" else 0.0
