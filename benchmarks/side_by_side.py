@@ -112,6 +112,9 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
                                  appearance_fitted=None if fitted is None else round(fitted, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
                                  samples_per_ray=round(stats["samples_per_ray"], 2),
                                  occupied=round(stats.get("occupied_fraction", 0.0), 4), load=round(os.getloadavg()[0], 2)))
+                if mark == cfg.marks[-1] and trainer.average is not None and trainer.average.apply():
+                    trainer.model.parameters_replaced()  # as the run ends: scored with the averaged parameters
+                    rows[-1]["psnr_averaged"] = round(evaluation.validate(trainer, cfg.eval_views, final=True)[0], 3)
                 print(json.dumps(rows[-1]), flush=True)
         if cfg.pictures is not None:
             write_orbit_strips(cfg.pictures, scene, [r["trainer"] for r in runs], cfg.eval_max_size)
