@@ -1,6 +1,6 @@
 """The average of the parameters over the late steps (:mod:`nerfpipe.training.averaging`): its arithmetic against a
-written-out reference, a restart where a parameter changes shape, checkpoints that resume it exactly, a run that ends
-with it, and the default (real captures only)."""
+written-out reference (a fixed decay and the power-function weights), a restart where a parameter changes shape,
+checkpoints that resume it exactly, a run that ends with it, and the default (real captures, and the models that ask for it)."""
 
 import pytest
 import torch
@@ -38,6 +38,26 @@ def test_warm_start_is_the_mean_then_exponential_and_a_new_shape_restarts():
     assert avg.count == 1 and torch.equal(avg.values["weight"], lin.weight)
     before = lin.bias.detach().clone()
     assert avg.apply() and torch.equal(lin.bias, avg.values["bias"]) and torch.equal(before, lin.bias)
+
+
+def test_power_weights_follow_the_step_count():
+    """``power``: the newest step weighs ``(power + 1) / step``, never less than the plain mean's ``1 / count`` nor more
+    than 1."""
+    lin = nn.Linear(3, 2)
+    avg = ParameterAverage(lin, start=2, decay=0.5, power=3.0)  # decay ignored
+    g = torch.Generator().manual_seed(0)
+    want = None
+    for step in range(1, 41):
+        with torch.no_grad():
+            lin.weight.copy_(torch.randn(2, 3, generator=g))
+        avg.update(step)
+        if step >= 2:
+            count = step - 1
+            w = min(1.0, max(4.0 / step, 1.0 / count))  # at most the newest step alone (step 3: 4/3)
+            want = lin.weight.detach().clone() if want is None else (1 - w) * want + w * lin.weight.detach()
+    torch.testing.assert_close(avg.values["weight"], want)
+    assert 4.0 / 40 < 0.5  # past the warm start the power weight, not 1 - decay, made the last steps
+    assert avg.count == 39
 
 
 def test_nothing_before_the_start_and_state_round_trip():
@@ -92,7 +112,7 @@ def test_a_run_ends_with_the_average_and_resumes_it_exactly(tiny_scene, tmp_path
     from nerfpipe.models.base import Callback
     from nerfpipe.training.checkpoint import CHECKPOINT, load_checkpoint
 
-    straight = _trainer(tiny_scene, tmp_path / "straight", average=True, average_from=3, average_decay=0.6)
+    straight = _trainer(tiny_scene, tmp_path / "straight", average=True, average_from=3, average_decay=0.6, average_power=0.0)
     steps = []
     straight.hooks.setdefault(Callback.AFTER_TRAIN_ITERATION, []).append(
         lambda step: steps.append({k: v.detach().clone() for k, v in straight.model.named_parameters()}))
@@ -106,14 +126,14 @@ def test_a_run_ends_with_the_average_and_resumes_it_exactly(tiny_scene, tmp_path
     saved = load_checkpoint(tmp_path / "straight" / CHECKPOINT)
     assert torch.equal(saved["model"][name], got) and saved["average"]["count"] == 6
     # killed after 4 steps and resumed: the same average and model, bit for bit
-    _trainer(tiny_scene, tmp_path / "split", iters=4, average=True, average_from=3, average_decay=0.6).train()
-    resumed = _trainer(tiny_scene, tmp_path / "split", average=True, average_from=3, average_decay=0.6, resume=True)
+    _trainer(tiny_scene, tmp_path / "split", iters=4, average=True, average_from=3, average_decay=0.6, average_power=0.0).train()
+    resumed = _trainer(tiny_scene, tmp_path / "split", average=True, average_from=3, average_decay=0.6, average_power=0.0, resume=True)
     resumed.train()
     a, b = straight.model.state_dict(), resumed.model.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_on_by_default_for_real_captures_only(tiny_scene, tmp_path):
+def test_on_by_default_for_real_captures_and_the_fast_model(tiny_scene, tmp_path):
     from colmap_synth import make_scene
 
     from nerfpipe.data_adapters import load
@@ -124,3 +144,9 @@ def test_on_by_default_for_real_captures_only(tiny_scene, tmp_path):
     assert _trainer(real, tmp_path / "a").average is not None
     assert _trainer(tiny_scene, tmp_path / "b").average is None
     assert _trainer(real, tmp_path / "c", average=False).average is None
+    from nerfpipe.models.fast import FastConfig
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
+
+    fast = Trainer(TrainerConfig(iters=1, rays_per_step=64, eval_every=0, video_frames=0, write_outputs=False, device="cpu"),
+                   tiny_scene, "fast", FastConfig(preset="small"), tmp_path / "d")
+    assert fast.average is not None and fast.supersample_from == 0  # the fast model averages everywhere; no plateau stop there

@@ -196,9 +196,16 @@ def test_the_supersampled_final_evaluation_of_averaged_parameters_is_reserved_mo
 
 
 def test_supersample_from_defaults_to_the_plateau_where_parameters_are_averaged(tiny_scene, tmp_path):
+    """The plateau is a real capture's (held-out views that stop improving); a synthetic scene's average does not stop
+    training early."""
+    from colmap_synth import make_scene
+
+    from nerfpipe.data_adapters import load
     from nerfpipe.training.trainer import PLATEAU_STEPS
 
-    assert Trainer(tcfg(average=True), tiny_scene, "vanilla", MODEL, tmp_path / "a").supersample_from == PLATEAU_STEPS
+    real = load(make_scene(tmp_path / "colmap"))
+    assert Trainer(tcfg(average=True), real, "vanilla", MODEL, tmp_path / "a").supersample_from == PLATEAU_STEPS
+    assert Trainer(tcfg(average=True), tiny_scene, "vanilla", MODEL, tmp_path / "d").supersample_from == 0
     assert Trainer(tcfg(average=False), tiny_scene, "vanilla", MODEL, tmp_path / "b").supersample_from == 0
     assert Trainer(tcfg(average=False, supersample_from=5), tiny_scene, "vanilla", MODEL, tmp_path / "c").supersample_from == 5
 

@@ -84,6 +84,10 @@ class Model(nn.Module):
     sensible defaults.
     """
 
+    averaged: bool = False
+    """Whether the trainer averages this model's parameters over the late steps by default on every scene
+    (``TrainerConfig.average`` None; real captures always)."""
+
     generator: "torch.Generator | None" = None
     """The stream of every random draw in training (sample jitter, occupancy refreshes, regulariser
     points), on the model's device. The trainer sets it so that a run is reproducible and leaves

@@ -38,10 +38,13 @@ class ParameterAverage:
         start: the first step (the trainer's count after the step) that enters the average.
         decay: weight of the average so far in each update once past the warm start (``1 - decay`` is the new
             step's weight, never less than ``1 / count``: the first ``1 / (1 - decay)`` steps count alike).
+        power: where positive, the new step's weight is ``(power + 1) / step`` instead of ``1 - decay`` (never less
+            than ``1 / count``, at most 1): a power-function average (as EDM2's), which spans about the last ``1 / (power + 1)``
+            of the steps so far however long the run goes.
     """
 
-    def __init__(self, model: nn.Module, start: int, decay: float) -> None:
-        self.start, self.decay = start, decay
+    def __init__(self, model: nn.Module, start: int, decay: float, power: float = 0.0) -> None:
+        self.start, self.decay, self.power = start, decay, power
         self.params = dict(model.named_parameters())
         self.values: "dict[str, Tensor] | None" = None
         self.count = 0
@@ -63,7 +66,7 @@ class ParameterAverage:
             self.values, self.count = {k: p.detach().clone() for k, p in self.params.items()}, 1
             return
         self.count += 1
-        weight = max(1.0 - self.decay, 1.0 / self.count)
+        weight = min(1.0, max((self.power + 1.0) / max(step, 1) if self.power > 0 else 1.0 - self.decay, 1.0 / self.count))
         torch._foreach_lerp_(list(self.values.values()), [p.detach() for p in self.params.values()], weight)
 
     @torch.no_grad()
