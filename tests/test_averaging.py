@@ -141,7 +141,7 @@ def test_on_by_default_for_real_captures_and_the_fast_model(tiny_scene, tmp_path
 
     real = load(make_scene(tmp_path / "colmap"))
     assert scene_info(real).unbounded and not scene_info(tiny_scene).unbounded
-    assert _trainer(real, tmp_path / "a").average is not None
+    assert (_trainer(real, tmp_path / "a").average.power, _trainer(real, tmp_path / "e").average.start) == (0.0, 256)  # a fixed decay there
     assert _trainer(tiny_scene, tmp_path / "b").average is None
     assert _trainer(real, tmp_path / "c", average=False).average is None
     from nerfpipe.models.fast import FastConfig
@@ -150,3 +150,4 @@ def test_on_by_default_for_real_captures_and_the_fast_model(tiny_scene, tmp_path
     fast = Trainer(TrainerConfig(iters=1, rays_per_step=64, eval_every=0, video_frames=0, write_outputs=False, device="cpu"),
                    tiny_scene, "fast", FastConfig(preset="small"), tmp_path / "d")
     assert fast.average is not None and fast.supersample_from == 0  # the fast model averages everywhere; no plateau stop there
+    assert (fast.average.power, fast.average.start) == (7.0, 128)  # a power-function average on bounded scenes
