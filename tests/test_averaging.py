@@ -141,7 +141,8 @@ def test_on_by_default_for_real_captures_and_the_fast_model(tiny_scene, tmp_path
 
     real = load(make_scene(tmp_path / "colmap"))
     assert scene_info(real).unbounded and not scene_info(tiny_scene).unbounded
-    assert (_trainer(real, tmp_path / "a").average.power, _trainer(real, tmp_path / "e").average.start) == (0.0, 256)  # a fixed decay there
+    average = _trainer(real, tmp_path / "a").average
+    assert (average.power, average.start) == (0.0, 256)  # a fixed decay there
     assert _trainer(tiny_scene, tmp_path / "b").average is None
     assert _trainer(real, tmp_path / "c", average=False).average is None
     from nerfpipe.models.fast import FastConfig

@@ -483,12 +483,14 @@ class FastModel(Model):
     """Grid field (dense coarse levels, hashed fine ones) + occupancy grid + packed volume rendering."""
 
     render_chunk = 16384
-    averaged = True  # synthetic scenes too: lego_200 after 300 / 1,000 steps 28.48 / 31.14 dB -> 28.75 / 31.51 (TrainerConfig.average_power)
     """Rays per forward pass when rendering whole images (:attr:`Model.render_chunk`): each pass has fixed costs (the
     rays' coarse span through the occupancy grid, the rounds of early termination, the field behind the box). On this
     2-core CPU a held-out view of colmap_mouse at 400 x 300 (a run's averaged checkpoint) renders in 2.9-3.0 s against
     3.3-3.4 s with 4,096 rays (32,768: 2.7-3.0), three lego_200 views at 200² in 1.70-1.79 s against 2.08-2.18 (65,536:
     1.63-1.86); the same pixels (within 6e-8). A GPU gains more from fewer, larger launches."""
+    averaged = True
+    """Averaged on synthetic scenes too (:attr:`Model.averaged`): lego_200 after 300 / 1,000 steps 28.48 / 31.14 dB ->
+    28.75 / 31.51 (``TrainerConfig.average_power``)."""
 
     def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
         super().__init__()

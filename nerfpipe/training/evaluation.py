@@ -377,9 +377,9 @@ def final_eval_need(trainer, supersample: bool = False, averaged_factor: float =
     """Seconds to leave when training stops for the final evaluation of every view at the configured size, one ray
     per pixel, or with ``supersample`` as many as the final evaluation would use (``eval_supersample`` at most, where
     views are scored smaller than their photographs), from the latest validation's time per ray, ``margin`` times over
-    (the supersampled one ``averaged_factor`` times more where the parameters are averaged); None before one. Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on
-    colmap_mouse under ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut training from 878
-    to 600 steps."""
+    (the supersampled one ``averaged_factor`` times more where the parameters are averaged); None before one.
+    Supersampling is reserved for only after ``supersample_from`` steps (the trainer's window): on colmap_mouse under
+    ``nerfpipe run --time-budget 300`` reserving for 2 x 2 rays from the start cut training from 878 to 600 steps."""
     if trainer.seconds_per_pixel is None:
         return None
     cfg, scene = trainer.cfg, trainer.scene

@@ -83,6 +83,12 @@ default where the parameters are averaged): colmap_mouse, 7 views at 400 px, the
 0.998, 24.56 / 24.53 dB after 800 / 1,000 steps and 24.55 after 1,149 (session 27), while scoring the same
 views with 2 x 2 rays per pixel instead of one adds 0.15 dB."""
 
+AVERAGE_FROM = {True: 256, False: 128}
+"""``TrainerConfig.average_from``'s default, for real captures (``SceneInfo.unbounded``) and elsewhere."""
+
+AVERAGE_POWER = {True: 0.0, False: 7.0}
+"""``TrainerConfig.average_power``'s default, for real captures (the fixed decay) and elsewhere (power-function)."""
+
 UNCAPPED_ITERS = 1 << 62
 """The iteration cap under a budget when ``iters`` is not set: none that a run reaches."""
 
@@ -243,7 +249,9 @@ class TrainerConfig:
             ("video_scale", 0 < self.video_scale <= 16, "a positive factor (at most 16)"),
             ("eval_max_size", self.eval_max_size is None or self.eval_max_size >= 1, "at least 1"),
             ("eval_supersample", 1 <= self.eval_supersample <= 8, "1 to 8"),
-            ("average_from", self.average_from is None or self.average_from >= 0, "0 or more"), ("average_decay", 0 <= self.average_decay < 1, "at least 0 and below 1"), ("average_power", self.average_power is None or self.average_power >= 0, "0 or more"),
+            ("average_from", self.average_from is None or self.average_from >= 0, "0 or more"),
+            ("average_decay", 0 <= self.average_decay < 1, "at least 0 and below 1"),
+            ("average_power", self.average_power is None or self.average_power >= 0, "0 or more"),
             ("supersample_from", self.supersample_from is None or self.supersample_from >= 0, "0 or more"),
             ("train_max_size", self.train_max_size is None or self.train_max_size >= 1, "at least 1"),
             ("num_threads", self.num_threads is None or self.num_threads >= 1, "at least 1"),
@@ -422,8 +430,8 @@ class Trainer:
         self._logged_at = 0.0  # perf_counter of the latest flush_losses
         self.hooks = self.model.callbacks()
         averaged = info.unbounded or self.model.averaged if cfg.average is None else cfg.average
-        start = (256 if info.unbounded else 128) if cfg.average_from is None else cfg.average_from
-        power = (0.0 if info.unbounded else 7.0) if cfg.average_power is None else cfg.average_power
+        start = AVERAGE_FROM[info.unbounded] if cfg.average_from is None else cfg.average_from
+        power = AVERAGE_POWER[info.unbounded] if cfg.average_power is None else cfg.average_power
         self.average = ParameterAverage(self.model, start, cfg.average_decay, power) if averaged else None
         """The running average of the parameters that the run ends with (None: the last step's)."""
         self.supersample_from = (PLATEAU_STEPS if self.average is not None and info.unbounded else 0) if cfg.supersample_from is None else cfg.supersample_from
@@ -594,9 +602,10 @@ class Trainer:
         rays as dear as the validations', no margin: the validations' time per ray is already 1.1x over the final
         evaluation's, and the final evaluation's probe picks one ray per pixel if 2 x 2 do not fit, so a stop that then
         finds too little time costs only steps past the plateau); ``none`` where not even that: training goes on to the
-        window of one ray per pixel, and the final evaluation's probe decides. ``nerfpipe run colmap_mouse --time-budget 300`` on a slow hour
-        reached the plateau at 182 s of its 254: the generous reserve (220 s; the 2 x 2 rays took 43 s in another run)
-        stopped training there, and the 72 s left then did not afford the 2 x 2 rays either."""
+        window of one ray per pixel, and the final evaluation's probe decides. ``nerfpipe run colmap_mouse
+        --time-budget 300`` on a slow hour reached the plateau at 182 s of its 254: the generous reserve (220 s; the 2 x 2
+        rays took 43 s in another run) stopped training there, and the 72 s left then did not afford the 2 x 2 rays
+        either."""
         from nerfpipe.training.evaluation import final_eval_need
 
         generous = final_eval_need(self, supersample=True)
