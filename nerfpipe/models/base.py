@@ -88,6 +88,10 @@ class Model(nn.Module):
     """Whether the trainer averages this model's parameters over the late steps by default on every scene
     (``TrainerConfig.average`` None; real captures always)."""
 
+    error_sampled: bool = False
+    """Whether the trainer draws a share of the rays from an error map by default on bounded scenes
+    (``TrainerConfig.error_sampling`` None)."""
+
     generator: "torch.Generator | None" = None
     """The stream of every random draw in training (sample jitter, occupancy refreshes, regulariser
     points), on the model's device. The trainer sets it so that a run is reproducible and leaves

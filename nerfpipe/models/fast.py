@@ -491,6 +491,9 @@ class FastModel(Model):
     averaged = True
     """Averaged on synthetic scenes too (:attr:`Model.averaged`): lego_200 after 300 / 1,000 steps 28.48 / 31.14 dB ->
     28.75 / 31.51 (``TrainerConfig.average_power``)."""
+    error_sampled = True
+    """A share of the rays from an error map on bounded scenes (:attr:`Model.error_sampled`): lego_200 after 300 steps
+    28.75 -> 29.45 dB (``TrainerConfig.error_sampling``)."""
 
     def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
         super().__init__()

@@ -25,7 +25,7 @@ from nerfpipe.outputs.colormap import ERROR_MAX
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec
 from nerfpipe.training import checkpoint, evaluation
-from nerfpipe.training.trainer import TrainerConfig
+from nerfpipe.training.trainer import RESOLVED_DEFAULTS, TrainerConfig
 from nerfpipe.util.configs import JsonTable
 from nerfpipe.util.errors import NerfpipeError, refuse_unless
 
@@ -95,8 +95,10 @@ def _resumable(out: Path, model: str, model_cfg, trainer_cfg: TrainerConfig) -> 
     if not (out / checkpoint.CHECKPOINT).is_file() or not (out / "config.json").is_file():
         return False
     old = json.loads((out / "config.json").read_text())
+    new = to_dict(trainer_cfg)
+    old_trainer = {**old.get("trainer", {}), **{k: None for k in RESOLVED_DEFAULTS if new.get(k) is None}}  # resolved at run time
     strip = lambda d: {k: v for k, v in d.items() if k not in _RESUMABLE_CHANGES}  # noqa: E731
-    same_trainer = strip(old.get("trainer", {})) == strip(to_dict(trainer_cfg))
+    same_trainer = strip(old_trainer) == strip(new)
     return old.get("model") == model and old.get("model_config") == to_dict(model_cfg) and same_trainer
 
 

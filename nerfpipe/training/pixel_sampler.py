@@ -110,67 +110,82 @@ class ErrorMap:
     spread evenly over the rest. Without the cap, rays crowd on what the field cannot explain (far
     background, reflections): with half the rays from the map colmap_mouse lost 1.0 dB at 300 steps, capped
     it was even (+0.02 dB), while lego_200 gained 0.7 dB (1.0 dB with 0.8 of the rays; figures at equal
-    steps: :attr:`~nerfpipe.training.trainer.TrainerConfig.error_sampling` says why it is off by default).
+    steps: :attr:`~nerfpipe.training.trainer.TrainerConfig.error_sampling` says where it is on by default).
     A tile no ray has visited yet counts the mean (not more: on a capture of 12 MP photos most tiles would
     otherwise be drawn once before any measured error steers the draws).
+
+    The map lives on ``device`` and neither drawing nor updating reads anything back: tiles are drawn by
+    inverting the weights' cumulative sum at uniform numbers drawn on the host (with the run's generator,
+    uploaded without blocking), and an update folds every tile's sum of errors in at once (no boolean masks:
+    issue 13's sync-free step).
     """
 
-    def __init__(self, widths: Tensor, heights: Tensor, offsets: Tensor, tiles: int = 16384, decay: float = 0.5) -> None:
+    def __init__(self, widths: Tensor, heights: Tensor, offsets: Tensor, tiles: int = 16384, decay: float = 0.5,
+                 device="cpu") -> None:
         """``widths``, ``heights``: each image's size; ``offsets``: its first pixel in the flat pixels; ``tiles``:
         about how many tiles in all (square, at least 4 pixels wide); ``decay``: the weight of a step's error
-        against what a tile held."""
-        self.widths, self.heights, self.offsets = widths.long(), heights.long(), offsets.long()
-        self.tile = max(4, round(math.sqrt(int(self.offsets[-1]) / tiles)))
+        against what a tile held; ``device``: where the map lives (the pixel indices it draws are there)."""
+        self.device = torch.device(device)
+        widths, heights, offsets = widths.long().cpu(), heights.long().cpu(), offsets.long().cpu()
+        self.tile = max(4, round(math.sqrt(int(offsets[-1]) / tiles)))
         self.decay = decay
-        self.cols = (self.widths + self.tile - 1) // self.tile
-        rows = (self.heights + self.tile - 1) // self.tile
-        self.tile_offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(self.cols * rows, 0)])
-        self.error = torch.ones(int(self.tile_offsets[-1]))
-        self.visited = torch.zeros(len(self.error), dtype=torch.bool)
-        self.mean = torch.ones(())
+        cols = (widths + self.tile - 1) // self.tile
+        rows = (heights + self.tile - 1) // self.tile
+        tile_offsets = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(cols * rows, 0)])
+        cam = torch.repeat_interleave(torch.arange(len(widths)), cols * rows)
+        local = torch.arange(int(tile_offsets[-1])) - tile_offsets[cam]
+        x0, y0 = (local % cols[cam]) * self.tile, (local // cols[cam]) * self.tile
+        w, h = (widths[cam] - x0).clamp_max(self.tile), (heights[cam] - y0).clamp_max(self.tile)  # an image's last tiles may be cut
+        self.table = torch.stack([offsets[cam] + y0 * widths[cam] + x0, w, h, widths[cam]], -1).to(self.device)
+        """Each tile's first pixel (flat index), width, height and its image's width ``[n, 4]``."""
+        area = torch.cumsum(w * h, 0).double()
+        self.area_cdf = (area / area[-1]).to(self.device)
+        """The share of all pixels up to each tile: uniform pixels are tiles drawn by their area."""
+        self.tile_offsets, self.cols = tile_offsets.to(self.device), cols.to(self.device)
+        self.error = torch.ones(len(w), device=self.device)
+        self.visited = torch.zeros(len(w), dtype=torch.bool, device=self.device)
+        self.mean = torch.ones((), device=self.device)
         """Running mean squared error of all rays, what unvisited tiles count."""
 
-    def draw(self, num: int, generator: "torch.Generator | None") -> "tuple[Tensor, Tensor]":
-        """``(pixel indices [num], tile indices [num])``: tiles in proportion to their error, uniform inside each."""
-        weights = torch.where(self.visited, self.error.minimum(self.mean), self.mean)
-        tiles = torch.multinomial(weights, num, replacement=True, generator=generator)
-        cam = torch.searchsorted(self.tile_offsets, tiles, right=True) - 1
-        local = tiles - self.tile_offsets[cam]
-        x0, y0 = (local % self.cols[cam]) * self.tile, (local // self.cols[cam]) * self.tile
-        w = (self.widths[cam] - x0).clamp_max(self.tile)  # an image's last tiles may be cut
-        h = (self.heights[cam] - y0).clamp_max(self.tile)
-        u = torch.rand(num, 2, generator=generator)
-        col = x0 + (u[:, 0] * w).long().minimum(w - 1)
-        row = y0 + (u[:, 1] * h).long().minimum(h - 1)
-        return self.offsets[cam] + row * self.widths[cam] + col, tiles
+    def draw(self, num: int, generator: "torch.Generator | None", uniform: int = 0) -> "tuple[Tensor, Tensor]":
+        """``(pixel indices [num], tile indices [num])`` on the map's device: tiles in proportion to their error, uniform
+        inside each; the last ``uniform`` of them uniform over all pixels (tiles in proportion to their pixels)."""
+        pick, across, down = upload(torch.rand(3, num, generator=generator, dtype=torch.float64), self.device)
+        n = num - uniform
+        cdf = torch.cumsum(torch.where(self.visited, self.error.minimum(self.mean), self.mean), 0, dtype=torch.float64)
+        tiles = torch.cat([torch.searchsorted(cdf, pick[:n] * cdf[-1:], right=True),
+                           torch.searchsorted(self.area_cdf, pick[n:], right=True)])
+        first, w, h, width = self.table[tiles.clamp_max_(len(cdf) - 1)].unbind(-1)
+        col = (across * w).long().minimum(w - 1)  # (a product may round up to w)
+        row = (down * h).long().minimum(h - 1)
+        return first + row * width + col, tiles
 
     def tiles_of(self, cam: Tensor, col: Tensor, row: Tensor) -> Tensor:
         """The tile of pixel ``(col, row)`` of image ``cam``."""
         return self.tile_offsets[cam] + (row // self.tile) * self.cols[cam] + col // self.tile
 
     def update(self, tiles: Tensor, errors: Tensor) -> None:
-        """Fold the squared errors ``[n]`` of rays drawn in ``tiles`` ``[n]`` into their tiles' running means."""
-        errors = errors.detach().float().cpu()
-        total = torch.zeros_like(self.error).index_add_(0, tiles, errors)
-        count = torch.zeros_like(self.error).index_add_(0, tiles, torch.ones_like(errors))
+        """Fold the squared errors ``[n]`` of rays drawn in ``tiles`` ``[n]`` into their tiles' running means
+        (a map on the host reads a device's errors back: the sampler keeps the map where its batches are drawn)."""
+        errors = errors.detach().float().to(self.device)
+        sums = torch.zeros(len(self.error), 2, device=self.device).index_add_(0, tiles, torch.stack([errors, torch.ones_like(errors)], -1))
+        total, count = sums.unbind(-1)
         hit = count > 0
-        mean = total[hit] / count[hit]
-        fresh = ~self.visited[hit]
-        self.error[hit] += torch.where(fresh, 1.0, self.decay) * (mean - self.error[hit])
-        self.error.clamp_(min=1e-6)
-        self.visited |= hit
-        self.mean += self.decay * (errors.mean() - self.mean)
+        mean = total / count.clamp_min(1)  # a running mean of each tile hit; a first visit sets it
+        self.error.copy_(torch.where(hit, torch.where(self.visited, self.error.lerp(mean, self.decay), mean), self.error).clamp_(min=1e-6))
+        self.visited.logical_or_(hit)
+        self.mean.lerp_(errors.mean(), self.decay)
 
     def state(self) -> Float[Tensor, "n"]:
-        """Everything the map holds, as one float tensor (a checkpoint's, gathered over ranks as bytes)."""
-        return torch.cat([self.error, self.visited.float(), self.mean[None]])
+        """Everything the map holds, as one float tensor on the host (a checkpoint's, gathered over ranks as bytes)."""
+        return torch.cat([self.error, self.visited.float(), self.mean[None]]).cpu()
 
     def load_state(self, state: Tensor) -> None:
         """Go on from :meth:`state`; a map of another size (other images, another tiling) is a ``ValueError``."""
         n = len(self.error)
         if state.numel() != 2 * n + 1:
             raise ValueError(f"error map of {(state.numel() - 1) // 2} tiles, this run's has {n}")
-        state = state.float().reshape(-1)
+        state = state.float().reshape(-1).to(self.device)
         self.error.copy_(state[:n]), self.visited.copy_(state[n : 2 * n] > 0), self.mean.copy_(state[-1])
 
 
@@ -198,15 +213,17 @@ class PixelSampler:
         self.tracks = TrackRays(scene, split, self.pixels, self.offsets, cameras) if track_rays and has_tracks else None
         self.track_rays = track_rays if self.tracks is not None and len(self.tracks) else 0
         """Rays per batch through sparse points (the rest are uniform pixels)."""
-        self.error_share = error_share
-        self.errors = ErrorMap(cameras.width, cameras.height, self.offsets, error_tiles) if error_share > 0 else None
-        self.last_tiles: "Tensor | None" = None
-        """The error-map tile of each pixel ray of the latest batch (its first rays), for :meth:`update_errors`."""
         if cache_rays is None:
             cache_rays = self.device.type == "cuda" and _fits(self.num_pixels * (_RAY_FLOATS * 4 + self.pixels.shape[1]), self.device)
         self.cached: "tuple[Tensor, Tensor, Tensor] | None" = self._cache() if cache_rays else None
         """Every pixel's ray ``[P, 7]`` (origin, direction, z scale), the pixels ``[P, C]`` and the offsets on the device,
         or None: rays generated per batch."""
+        self.error_share = error_share
+        self.errors = ErrorMap(cameras.width, cameras.height, self.offsets, error_tiles,
+                               device=self.device if self.cached is not None else "cpu") if error_share > 0 else None
+        """The error map, where the batches' pixel indices are drawn: on the device with cached rays, else on the host."""
+        self.last_tiles: "Tensor | None" = None
+        """The error-map tile of each pixel ray of the latest batch (its first rays), for :meth:`update_errors`."""
 
     def __len__(self) -> int:
         return self.num_pixels
@@ -233,15 +250,12 @@ class PixelSampler:
             self.errors.update(self.last_tiles, errors[: len(self.last_tiles)])
 
     def _uniform(self, num_rays: int, generator: "torch.Generator | None") -> PixelBatch:
-        idx = torch.randint(len(self), (num_rays,), generator=generator)
-        if self.errors is not None:
-            n = int(round(num_rays * self.error_share))
-            picked, tiles = self.errors.draw(n, generator)
-            idx = torch.cat([picked, idx[n:]])
-        if self.cached is None or self.errors is not None:
+        if self.errors is not None:  # on the map's device: the sampler's with cached rays, else the host
+            idx, self.last_tiles = self.errors.draw(num_rays, generator, uniform=num_rays - round(num_rays * self.error_share))
+        else:
+            idx = torch.randint(len(self), (num_rays,), generator=generator)
+        if self.cached is None:
             cam, col, row = self._pixel_coords(idx)
-            if self.errors is not None:
-                self.last_tiles = torch.cat([tiles, self.errors.tiles_of(cam[n:], col[n:], row[n:])])
         bg = background_colors(self.background, num_rays, generator)
         if self.cached is not None:  # one upload of the indices, three gathers on the device
             table, pixels, offsets = self.cached
@@ -278,13 +292,8 @@ class PixelSampler:
         return table, self.pixels.to(self.device), self.offsets.to(self.device)
 
     def _upload(self, t: Tensor) -> Tensor:
-        """A batch tensor drawn on the host, on the sampler's device: to CUDA through pinned memory without
-        blocking (a copy from pageable memory makes the host wait for the stream, once per tensor and step).
-        An expanded tensor (one background colour for every ray) is made contiguous first: ``pin_memory`` refuses
-        tensors whose elements share memory."""
-        if self.device.type != "cuda":
-            return t.to(self.device)
-        return t.contiguous().pin_memory().to(self.device, non_blocking=True)
+        """A batch tensor drawn on the host, on the sampler's device (:func:`upload`)."""
+        return upload(t, self.device)
 
 
 _RAY_FLOATS = 7
@@ -292,6 +301,16 @@ _RAY_FLOATS = 7
 
 CACHE_MAX_BYTES = 4 << 30
 """The most device memory :class:`PixelSampler` caches every pixel's ray in (by default, on CUDA)."""
+
+
+def upload(t: Tensor, device: torch.device) -> Tensor:
+    """``t`` on ``device``: a tensor drawn on the host goes to CUDA through pinned memory without blocking (a copy
+    from pageable memory makes the host wait for the stream, once per tensor and step); one already there is
+    returned as it is. An expanded tensor (one background colour for every ray) is made contiguous first:
+    ``pin_memory`` refuses tensors whose elements share memory."""
+    if t.device == device or device.type != "cuda" or t.device.type != "cpu":
+        return t.to(device)
+    return t.contiguous().pin_memory().to(device, non_blocking=True)
 
 
 def _fits(nbytes: int, device: torch.device) -> bool:

@@ -89,6 +89,13 @@ AVERAGE_FROM = {True: 256, False: 128}
 AVERAGE_POWER = {True: 0.0, False: 7.0}
 """``TrainerConfig.average_power``'s default, for real captures (the fixed decay) and elsewhere (power-function)."""
 
+ERROR_SAMPLING = 0.3
+"""``TrainerConfig.error_sampling``'s default on bounded scenes for a model that asks for it (``Model.error_sampled``)."""
+
+RESOLVED_DEFAULTS = ("rays_per_step", "error_sampling")
+"""Options whose None the trainer resolves (by the device, the scene and the model) into the config its run records:
+a run given None continues one that recorded the resolved value."""
+
 UNCAPPED_ITERS = 1 << 62
 """The iteration cap under a budget when ``iters`` is not set: none that a run reaches."""
 
@@ -122,20 +129,17 @@ class TrainerConfig:
     """Longer side in pixels of the images training rays are drawn from, at most: larger photographs are
     area-downscaled once at load (their cameras with them), so each ray's colour is the mean over its pixel's
     footprint at that size (None: full resolution). The model's capacity follows these pixels."""
-    error_sampling: float = 0.0
+    error_sampling: "float | None" = None
     """Share of the pixel rays drawn where the field is still wrong (an error map after instant-ngp's:
-    :class:`~nerfpipe.training.pixel_sampler.ErrorMap`); the rest are uniform. Off by default: on lego_200 0.8
-    gains 1.0 dB at equal steps (28.77 against 27.73 dB after 300) but its rays hit the object and cost 1.5-1.9x
-    the time per step on this CPU, so at equal time it trails (28.77 dB after 80 s against 29.57), and on
-    colmap_mouse it loses at equal steps too (-0.26 dB after 600: rays leave the object the field has
-    learnt for surroundings it cannot). Where a step's time does not grow with its samples (a GPU bound
-    by kernel launches), its gain per step is the gain. Session 42, with the parameter average (side by side, one
-    ray per pixel, the average scored): lego_200 after 300 steps 0 / 0.3 / 0.5 **28.75 / 29.29 / 29.60 dB** at 0.143 /
-    0.148 / 0.177 s per step (4.3 / 6.3 / 8.2 samples per ray), after 1,000 0.3 32.07 against 31.51 at 0.161 s per
-    step (9.9 samples per ray): at 300 steps 0.3 gains at about equal time; ``nerfpipe demo`` with 0.3 26.77 dB after
-    940 iterations, F-score@1 % 0.983, free-space violation 0.033 (without: 26.71 / 761 / 0.973 / 0.029). Not yet a
-    default: the error map's boolean indexing costs host syncs (the op-count test's steady CPU step 14.4 syncs and
-    1,305 ops against its budget of 1,260; on CUDA each sync stalls the GPU) until it is made sync-free."""
+    :class:`~nerfpipe.training.pixel_sampler.ErrorMap`); the rest are uniform. None: :data:`ERROR_SAMPLING` on
+    bounded scenes for a model that asks for it (``Model.error_sampled``: the ``fast`` model), else 0; the run's
+    ``config.json`` records the share used. On lego_200 after 300 steps (session 43, side by side, the average
+    scored) 0 / 0.3 **28.75 / 29.45 dB** at 0.099 / 0.114 s per step (4.3 / 6.4 samples per ray: its rays hit the
+    object); session 42, with a map that read its tiles back: 0.5 29.60 at 1.24x the time per step, 0.8 without the
+    average 28.77 against 27.73 but 1.5-1.9x the time per step. Off on real captures: on colmap_mouse it loses at
+    equal steps (-0.26 dB after 600 with 0.8: rays leave the object the field has learnt for surroundings it cannot
+    explain). Where a step's time does not grow with its samples (a GPU bound by kernel launches), its gain per
+    step is the gain."""
     average: "bool | None" = None
     """Evaluate and save the parameters averaged over the late steps (:mod:`nerfpipe.training.averaging`: an
     exponential moving average from step ``average_from`` on, warm-started uniform) instead of the last step's.
@@ -239,7 +243,7 @@ class TrainerConfig:
         checks = (
             ("iters", self.iters is None or self.iters >= 0, "0 or more"), ("rays_per_step", self.rays_per_step is None or 1 <= self.rays_per_step <= MAX_RAYS_PER_STEP, f"None or between 1 and {MAX_RAYS_PER_STEP}"),
             ("track_rays", self.track_rays >= 0, "0 or more"), ("lr", self.lr > 0, "positive"),
-            ("error_sampling", 0 <= self.error_sampling <= 1, "between 0 and 1"), ("error_tiles", self.error_tiles >= 1, "at least 1"),
+            ("error_sampling", self.error_sampling is None or 0 <= self.error_sampling <= 1, "between 0 and 1"), ("error_tiles", self.error_tiles >= 1, "at least 1"),
             ("eval_every", self.eval_every >= 0, "0 or more"), ("chunk", self.chunk is None or self.chunk >= 1, "at least 1"),
             ("train_budget", self.train_budget is None or self.train_budget >= 0, "0 or more seconds"),
             ("time_budget", self.time_budget is None or self.time_budget >= 0, "0 or more seconds"),
@@ -414,6 +418,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
         self.rays = share(cfg.rays_per_step, self.world)
         """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
+        if cfg.error_sampling is None:  # recorded in config.json as used
+            cfg = self.cfg = replace(cfg, error_sampling=ERROR_SAMPLING if self.model.error_sampled and not info.unbounded else 0.0)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
                                     max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles,
                                     cache_rays=cfg.cache_rays)
