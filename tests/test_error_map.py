@@ -148,3 +148,14 @@ def test_a_stage_with_the_defaults_resumes_the_run_that_recorded_them_resolved(t
     assert (tmp_path / checkpoint.CHECKPOINT).is_file()
     assert _resumable(tmp_path, "fast", model, replace(cfg, iters=4))
     assert not _resumable(tmp_path, "fast", model, replace(cfg, iters=4, error_sampling=0.5))
+
+
+def test_the_uniform_share_is_uniform_over_pixels_the_cut_tiles_included():
+    """The uniform rays come through the same tiles, drawn by their pixel counts: every pixel alike, where the error
+    draws (an untouched map: every tile alike) give the pixels of an image's cut last tiles more rays each."""
+    m = small_map()
+    total = int(OFFSETS[-1])
+    uniform = torch.bincount(m.draw(400_000, torch.Generator().manual_seed(5), uniform=400_000)[0], minlength=total).float()
+    assert float(uniform.std() / uniform.mean()) < 0.1
+    by_error = torch.bincount(m.draw(400_000, torch.Generator().manual_seed(5))[0], minlength=total).float()
+    assert float(by_error.std() / by_error.mean()) > 0.3
