@@ -56,7 +56,13 @@ def test_power_weights_follow_the_step_count():
             w = min(1.0, max(4.0 / step, 1.0 / count))  # at most the newest step alone (step 3: 4/3)
             want = lin.weight.detach().clone() if want is None else (1 - w) * want + w * lin.weight.detach()
     torch.testing.assert_close(avg.values["weight"], want)
-    assert 4.0 / 40 < 0.5  # past the warm start the power weight, not 1 - decay, made the last steps
+    fixed = ParameterAverage(lin, start=2, decay=0.5)  # what 1 - decay would have made of the same steps
+    g = torch.Generator().manual_seed(0)
+    for step in range(1, 41):
+        with torch.no_grad():
+            lin.weight.copy_(torch.randn(2, 3, generator=g))
+        fixed.update(step)
+    assert not torch.allclose(fixed.values["weight"], want)  # past the warm start the power weight made the last steps
     assert avg.count == 39
 
 

@@ -114,6 +114,8 @@ def test_a_resumed_run_goes_on_with_its_error_map(scene_path, tmp_path):
 def test_on_by_default_for_the_fast_model_on_bounded_scenes_only(tiny_lego, tmp_path):
     """``error_sampling`` None: :data:`~nerfpipe.training.trainer.ERROR_SAMPLING` for the fast model on a bounded scene,
     recorded in the run's config as the share used; none on a real capture, none for the classic NeRF MLP."""
+    from dataclasses import replace
+
     from colmap_synth import make_scene
 
     from nerfpipe.data_adapters import load
@@ -128,7 +130,7 @@ def test_on_by_default_for_the_fast_model_on_bounded_scenes_only(tiny_lego, tmp_
     real = Trainer(cfg, load(make_scene(tmp_path / "colmap")), "fast", FastConfig(preset="small"), tmp_path / "real")
     assert real.cfg.error_sampling == 0 and real.sampler.errors is None
     assert Trainer(cfg, tiny_lego, "vanilla", VanillaConfig(), tmp_path / "vanilla").sampler.errors is None
-    chosen = Trainer(TrainerConfig(**{**cfg.__dict__, "error_sampling": 0.0}), tiny_lego, "fast", FastConfig(preset="small"), tmp_path / "off")
+    chosen = Trainer(replace(cfg, error_sampling=0.0), tiny_lego, "fast", FastConfig(preset="small"), tmp_path / "off")
     assert chosen.sampler.errors is None
 
 
