@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -123,3 +124,42 @@ def test_step_profile_times_each_mode_and_batch(scene_path, tmp_path, device):
         assert all(0 < r["gpu_busy_ms_per_step"] <= r["profiled_ms_per_step"] and r["kernel_launches_per_step"] >= 1 for r in rows)
     else:
         assert not any("gpu_busy_ms_per_step" in r for r in rows)
+
+
+def test_ray_regions_match_points_sampled_along_the_rays():
+    """A ray is in ``box`` where a point sampled along it (in front of its origin) lies in the box, else in ``plane``
+    where it crosses the plane downwards from above it; every ray is in exactly one region."""
+    from benchmarks.held_out_regions import REGIONS, ray_regions
+
+    g = torch.Generator().manual_seed(0)
+    origins = torch.randn(600, 3, generator=g) * 3.0
+    directions = torch.nn.functional.normalize(torch.randn(600, 3, generator=g), dim=-1)
+    box, plane = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), torch.tensor([0.0, 0.0, 1.0, 1.5])  # z = -1.5
+    masks = ray_regions(origins, directions, box, plane)
+    assert torch.equal(sum(masks[k].long() for k in REGIONS), torch.ones(600, dtype=torch.long))
+    t = torch.cat([torch.linspace(0.0, 20.0, 4001), torch.logspace(1.31, 6.0, 400)])  # far enough for shallow rays to cross the plane
+    pts = origins[:, None] + t[None, :, None] * directions[:, None]
+    in_box = ((pts >= -1.0) & (pts <= 1.0)).all(-1).any(-1)
+    crosses = (origins[:, 2] > -1.5) & (pts[..., 2] < -1.5).any(-1)
+    assert torch.equal(masks["box"], in_box)
+    assert torch.equal(masks["plane"], crosses & ~in_box)
+    assert 0 < int(masks["box"].sum()) < 600 and 0 < int(masks["plane"].sum()) < 600 and int(masks["rest"].sum()) > 0
+
+
+def test_held_out_regions_split_a_runs_error_and_bound_it_by_an_affine_oracle(tiny_lego_npz, tmp_path):
+    from benchmarks.held_out_regions import REGIONS, RegionsConfig, main, oracle_affine_mse
+    from nerfpipe.pipeline.stages import Pipeline
+
+    train = {"model": "fast", "model_options": {"preset": "small", "levels": [8, 16]},
+             "trainer": {"iters": 20, "rays_per_step": 256, "eval_every": 0, "final_eval_views": 1, "video_frames": 0}}  # fmt: skip
+    Pipeline(["load", "train"], {"train": train}).run(tiny_lego_npz, tmp_path)
+    out = main(RegionsConfig(tmp_path, max_size=None, pictures=tmp_path / "pictures", threads=torch.get_num_threads()))
+    s = out["summary"]
+    assert s["views"] == len(out["views"]) == 2 and len(list((tmp_path / "pictures").glob("view_*.png"))) == 2
+    assert sum(s[f"{k}_pixel_share"] for k in REGIONS) == pytest.approx(1.0)
+    assert sum(s[f"{k}_error_share"] for k in REGIONS) == pytest.approx(1.0)
+    assert s["plane_pixel_share"] == 0.0  # a synthetic object: no support plane
+    assert all(v["psnr_oracle_affine"] >= v["psnr"] - 1e-6 for v in out["views"]) and 5.0 < s["psnr"] < 40.0
+    pred = torch.rand(500, 3, generator=torch.Generator().manual_seed(1))
+    assert oracle_affine_mse(pred, 0.5 * pred + 0.2) < 1e-12  # an exposure change is explained away
+    assert oracle_affine_mse(pred, pred.flip(0)) > 0.05  # a different picture is not

@@ -38,7 +38,9 @@ class BackgroundFieldConfig:
     since the table's texture lies among its samples, (6,) against (8,) side by side (7 views at 400 px, one ray per
     pixel): colmap_mouse 24.54 / 24.58 → **24.60 / 24.72** after 600 / 900 ((4,) 24.51 / 24.44), the room scene 27.99 /
     31.01 → 28.18 / 31.05 after 300 / 600, the 23-photo posed cut 23.74 / 22.99 → 23.75 / **23.56** (3 views), ngp_fox
-    26.71 / 27.88 → 26.70 / 27.87 (9 views), photos_sceaux_castle 14.37 / 14.25 → 14.38 / 14.48 (2 views)."""
+    26.71 / 27.88 → 26.70 / 27.87 (9 views), photos_sceaux_castle 14.37 / 14.25 → 14.38 / 14.48 (2 views). Session 44, not
+    kept: the grid's linear part grown to 2 / 3 object regions (the backdrop cards behind colmap_mouse inside it) with
+    (12,) / (16,) vertices, 24.02 / 23.75 dB after 600 steps against 24.62: finer near the box paints it all the same."""
     feature_channels: int = 2
     """Colour features per vertex and level."""
     hidden: int = 32

@@ -25,7 +25,11 @@ from torch import Tensor, nn
 class PlaneTextureConfig:
     """The texture on the support plane (``fast`` model, real captures standing on a table or floor). colmap_mouse side by
     side after 600 / 900 steps (session 35, before ``initial_opacity``): the default then 24.52 / 24.56 dB; 4 features per texel 24.52 / 24.54; a 1,024
-    level 24.46 / 24.47; a 64-wide MLP 24.53 / 24.55; learning rate 0.1 / 0.3 24.47 / 24.55 and 24.49 / 24.50 (7 held-out views at 400 px, one ray per pixel)."""
+    level 24.46 / 24.47; a 64-wide MLP 24.53 / 24.55; learning rate 0.1 / 0.3 24.47 / 24.55 and 24.49 / 24.50 (7 held-out views at 400 px, one ray per pixel).
+    Session 44, not kept: a colour that depends on the viewing direction (a second MLP of the texels and the direction code
+    added to the colour's logits, starting at zero; the opacity view-independent) 24.48 / 24.23 dB after 600 / 900 steps,
+    averaged 24.67, against the default's 24.62 / 24.72, averaged 24.78: the table's brightness that the held-out views
+    miss is the light of each photograph (the photographer's shadow in the top-down views), not a sheen."""
 
     levels: "tuple[int, ...]" = (16, 32, 64, 128, 256, 512)
     """Texels per side of each level over the contracted plane ``[-2, 2]^2`` (the object region's disc is its middle half)."""
