@@ -3,7 +3,7 @@ object region, the support plane outside it, the rest), and a bound on what a pe
 the PSNR after an affine colour map fitted to the whole photograph (an oracle: the view's own pixels choose it).
 
 Run: ``python -m benchmarks.held_out_regions RUN [--max-size 400] [--pictures DIR]``. Prints one JSON line per view
-and one for the totals; ``--pictures`` writes per view the render, the photograph and the signed error (red where
+and one for the totals; ``--pictures`` writes per view the photograph, the render and the signed error (red where
 the render is brighter, blue where darker, 4x), which shows lighting that no model of the scene can predict (a
 photographer's shadow) apart from what it misses.
 """
@@ -14,13 +14,13 @@ if __name__ == "__main__":  # run as a program: the CLI's process settings, befo
     runtime.apply()
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import tyro
 
+from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.util.typing import Bool, Float, Tensor
 
 
@@ -35,7 +35,7 @@ class RegionsConfig:
     views: int = 0
     """Held-out views scored (0: all of the split)."""
     pictures: "Path | None" = None
-    """Write ``view_NNNN.png`` (render | photograph | signed error) here."""
+    """Write ``view_NNNN.png`` (photograph | render | signed error, as ``nerfpipe eval --pictures`` orders its strips) here."""
     threads: int = 2
 
 
@@ -60,13 +60,9 @@ def ray_regions(
 def oracle_affine_mse(pred: Float[Tensor, "num_pixels 3"], gt: Float[Tensor, "num_pixels 3"]) -> float:
     """Mean squared error after the affine colour map (3 x 3 and an offset) that best maps ``pred`` to ``gt`` (least
     squares on all the pixels): at most the plain error, since the identity is one such map."""
-    a = torch.cat([pred.double(), torch.ones_like(pred[:, :1], dtype=torch.float64)], dim=1)
-    x = torch.linalg.lstsq(a, gt.double()).solution
-    return float(((a @ x - gt.double()) ** 2).mean())
+    from nerfpipe.training.evaluation import affine_colour, fit_affine_colour
 
-
-def _db(mse: float) -> "float | None":
-    return -10.0 * math.log10(max(mse, 1e-12)) if mse == mse else None
+    return float(((affine_colour(pred, fit_affine_colour(pred, gt)) - gt.double()) ** 2).mean())
 
 
 def main(cfg: RegionsConfig) -> dict:
@@ -94,12 +90,12 @@ def main(cfg: RegionsConfig) -> dict:
         err = ((pred - target) ** 2).mean(-1)
         rays = camera_rays(cam, 0).reshape(-1)
         masks = ray_regions(rays.origins, rays.directions, box.to(rays.origins), None if plane is None else plane.to(rays.origins))
-        row = {"view": idx[i], "psnr": _db(float(err.mean())), "psnr_oracle_affine": _db(oracle_affine_mse(pred, target))}
+        row = {"view": idx[i], "psnr": psnr_from_mse(float(err.mean())), "psnr_oracle_affine": psnr_from_mse(oracle_affine_mse(pred, target))}
         for k, m in masks.items():
             totals[k][0] += int(m.sum())
             totals[k][1] += float(err[m].sum())
             row[f"{k}_share"] = float(m.float().mean())
-            row[f"{k}_psnr"] = _db(float(err[m].mean())) if bool(m.any()) else None
+            row[f"{k}_psnr"] = psnr_from_mse(float(err[m].mean())) if bool(m.any()) else None
         rows.append(row)
         print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
         if cfg.pictures is not None:
@@ -110,7 +106,7 @@ def main(cfg: RegionsConfig) -> dict:
         "psnr_oracle_affine": sum(r["psnr_oracle_affine"] for r in rows) / len(rows),
         **{f"{k}_pixel_share": c / pixels for k, (c, _) in totals.items()},
         **{f"{k}_error_share": (e / error if error > 0 else 0.0) for k, (_, e) in totals.items()},
-        **{f"{k}_psnr": (_db(e / c) if c else None) for k, (c, e) in totals.items()},
+        **{f"{k}_psnr": (psnr_from_mse(e / c) if c else None) for k, (c, e) in totals.items()},
     }
     print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in summary.items()}), flush=True)
     return {"views": rows, "summary": summary}
@@ -124,7 +120,7 @@ def _picture(path: Path, pred: Float[Tensor, "H W 3"], gt: Float[Tensor, "H W 3"
     signed = (pred.float() - gt.float()).mean(-1, keepdim=True) * 4.0
     grey = torch.full_like(signed, 0.5)
     heat = torch.cat([grey + signed.clamp(min=0), grey - signed.abs() * 0.5, grey - signed.clamp(max=0)], dim=-1).clamp(0, 1)
-    save_snapshot(path, to_uint8(torch.cat([pred.float().clamp(0, 1), gt.float().clamp(0, 1), heat], dim=1)))
+    save_snapshot(path, to_uint8(torch.cat([gt.float().clamp(0, 1), pred.float().clamp(0, 1), heat], dim=1)))
 
 
 if __name__ == "__main__":

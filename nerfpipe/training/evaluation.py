@@ -69,13 +69,25 @@ def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     on its left half: how well a held-out view is predicted up to its own exposure and white balance
     (the NeRF-W / nerfbaselines protocol for per-image appearance; the map is fitted on pixels not scored)."""
     w = pred.shape[1] // 2
-    x = pred.reshape(pred.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
-    y = gt.to(pred.device).reshape(gt.shape[0], -1, 3)[:, :w].reshape(-1, 3).double()
-    a = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)
-    m = torch.linalg.lstsq(a, y).solution  # [4, 3]
-    right = pred[:, w:].reshape(-1, 3).double()
-    mapped = (torch.cat([right, torch.ones_like(right[:, :1])], dim=-1) @ m).clamp(0, 1)
+    x = pred.reshape(pred.shape[0], -1, 3)[:, :w].reshape(-1, 3)
+    y = gt.to(pred.device).reshape(gt.shape[0], -1, 3)[:, :w].reshape(-1, 3)
+    mapped = affine_colour(pred[:, w:].reshape(-1, 3), fit_affine_colour(x, y)).clamp(0, 1)
     return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
+
+
+def fit_affine_colour(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The affine colour map (3x3 and an offset, ``[4, 3]`` on homogeneous colours, float64) that takes colours ``x``
+    ``[N, 3]`` closest to ``y`` in least squares (:func:`affine_colour` applies it)."""
+    return torch.linalg.lstsq(_homogeneous(x), y.double().to(x.device)).solution
+
+
+def affine_colour(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """Colours ``x`` ``[N, 3]`` through the map ``m`` of :func:`fit_affine_colour` (float64)."""
+    return _homogeneous(x) @ m
+
+
+def _homogeneous(x: torch.Tensor) -> torch.Tensor:
+    return torch.cat([x.double(), torch.ones_like(x[:, :1], dtype=torch.float64)], dim=-1)
 
 
 VAL_COLUMNS = ("step", "train_seconds", "val_psnr", "val_ssim", "views")
