@@ -482,3 +482,15 @@ def test_held_out_fall_reads_the_intermediate_validations_of_the_same_views():
     right = [[100, 11.0, 22.54, 0.87, 1], [600, 73.0, 26.02, 0.93, 1], [915, 129.0, 24.74, 0.93, 7]]
     assert held_out_fall(right) == 0.0
     assert held_out_fall(right[:1]) == 0.0 and held_out_fall([]) == 0.0
+
+
+def test_the_trainer_hands_its_batch_to_the_learning_rates(tiny_scene, tmp_path):
+    """The fast model's rates follow the trainer's rays per step (``FastConfig.lr_reference_rays``): 128 rays at a
+    reference of 32 take twice each rate, as the schedule's ``initial_lr`` too."""
+    from nerfpipe.models.fast import FastConfig
+
+    cfg = FastConfig(preset="small", lr_reference_rays=32)
+    t = Trainer(tcfg(rays_per_step=128), tiny_scene, "fast", cfg, tmp_path)
+    given = [g["lr"] for g in t.model.param_groups()]
+    assert [g["initial_lr"] for g in t.optimizer.param_groups] == pytest.approx([2 * lr for lr in given])
+    assert given[0] == cfg.grid_lr

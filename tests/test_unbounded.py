@@ -149,6 +149,28 @@ def test_fine_levels_learning_rates():
     assert f0 > 0.5 * chosen.cfg.grid_lr and 0.15 < f1 <= 0.301, moved
 
 
+def test_learning_rates_follow_the_batch():
+    """The fast model's rates are given for ``lr_reference_rays`` rays a step: a step of four times as many takes every
+    group's twice as large; a quarter as many, the batch unknown (None) or ``lr_reference_rays=0`` keep them."""
+    from nerfpipe.models.fast import LR_REFERENCE_RAYS
+
+    info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=40, pixels_per_image=10**6)
+    for scene in (SceneInfo(**info, unbounded=True, focal_spread=0.02), SceneInfo(**info, has_alpha=True)):
+        model = FastConfig(preset="small", lr_reference_rays=LR_REFERENCE_RAYS).setup(scene)
+        given = [g["lr"] for g in model.param_groups()]
+        assert given == [g["lr"] for g in model.param_groups(LR_REFERENCE_RAYS)] and len(given) >= 4
+        assert [g["lr"] for g in model.param_groups(4 * LR_REFERENCE_RAYS)] == pytest.approx([2 * lr for lr in given])
+        assert [g["lr"] for g in model.param_groups(LR_REFERENCE_RAYS // 4)] == given  # smaller batches: as given (not measured)
+        fixed = FastConfig(preset="small", lr_reference_rays=0).setup(scene)
+        assert [g["lr"] for g in fixed.param_groups(4 * LR_REFERENCE_RAYS)] == given
+    # by default: bounded scenes scaled, real captures (measured no better at 16,384 rays) not
+    bounded = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True))
+    real = FastConfig(preset="small").setup(SceneInfo(**info, unbounded=True, focal_spread=0.02))
+    assert bounded.lr_reference_rays == LR_REFERENCE_RAYS and real.lr_reference_rays is None
+    assert bounded.param_groups(4 * LR_REFERENCE_RAYS)[0]["lr"] == pytest.approx(2 * bounded.cfg.grid_lr)
+    assert real.param_groups(4 * LR_REFERENCE_RAYS)[0]["lr"] == real.cfg.grid_lr
+
+
 def test_real_captures_take_density_from_the_coarsest_levels_and_colour_from_all():
     """Real captures (a field behind the box): density from DENSITY_LEVELS_REAL levels (the finer density tables change
     nothing), colour from every level; synthetic scenes, a real capture without the field behind the box (as the demo

@@ -143,8 +143,9 @@ class Model(nn.Module):
         """Called after the trainer replaced the parameters (their average at the end of training): rebuild
         whatever was derived from them (e.g. an occupancy grid). Default: nothing."""
 
-    def param_groups(self) -> "list[dict]":
-        """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr."""
+    def param_groups(self, rays_per_step: "int | None" = None) -> "list[dict]":
+        """Optimiser parameter groups (``{"params": [...], "lr": ...}``); default: all, trainer lr. ``rays_per_step``:
+        the trainer's batch, for models whose learning rates follow it (None: unknown)."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
     def lr_factor(self, step: int) -> float:

@@ -150,6 +150,29 @@ SPARSE_CHECK_EVERY = 256
 """Steps between the checks (one host read per level) whether a sparse level ran out of free blocks or holds many no
 longer needed (then it is laid out again: :meth:`FastModel._relayout_sparse`)."""
 
+LR_REFERENCE_RAYS = 4096
+"""The batch (rays per training step) that :class:`FastConfig`'s learning rates are given for on bounded scenes: this
+CPU's default (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`); a GPU's 16,384 rays a step take them twice as
+large (:func:`batch_lr_scale`). Session 45, side by side at equal steps with 16,384 rays a step (this CPU; one ray per
+pixel, the parameter average scored): the 800² stand-in (``python -m benchmarks.lego800``, 4 views at full size) the
+rates as given 28.55 / 31.25 dB after 600 / 3,000 steps, twice as large **29.04 / 31.82** (0.80x the seconds per step at
+600: 10 samples per ray against 15); blender_lego (5 views, full size) after 300 29.09 against **29.65** (0.79x). Only the
+fine colour features' or only the MLP's twice as large: 28.56 / 28.71 after 600. At 4,096 rays the same doubling loses
+(lego800 26.78 against 26.84 after 600, lego_200 29.29 against 29.45 after 300): it is the batch, not the rates. Real
+captures keep their rates (colmap_mouse at 16,384 rays, 7 views at 400 px: 24.76 against 24.82 after 900)."""
+
+
+def batch_lr_scale(rays_per_step: "int | None", reference: "int | None") -> float:
+    """The factor on learning rates given for ``reference`` rays per step at a step of ``rays_per_step`` (Adam's
+    square-root rule) where it is larger; 1 at smaller batches (not measured: the rates as given) or where either is None.
+
+    Example:
+        >>> batch_lr_scale(16384, 4096), batch_lr_scale(4096, 4096), batch_lr_scale(1024, 4096), batch_lr_scale(16384, None)
+        (2.0, 1.0, 1.0, 1.0)
+    """
+    return math.sqrt(max(rays_per_step / reference, 1.0)) if rays_per_step and reference else 1.0
+
+
 LR_DECAY_STEPS = 5000
 """Steps over which the learning rates fall tenfold, bounded scenes (``FastConfig.lr_decay_steps``). 2,000 until
 session 25; lego_200 (``small``, sparse levels; 10 views, side by side at equal steps) 28.48 / 31.14 / **33.03 dB**
@@ -270,6 +293,11 @@ class FastConfig:
     large capture trained to its plateau."""
     mlp_lr: float = 1e-2
     """Adam learning rate of the colour MLP."""
+    lr_reference_rays: "int | None" = None
+    """The rays per training step the learning rates here are given for: a step of ``R`` rays, more than these, multiplies
+    every one of them by ``sqrt(R / lr_reference_rays)`` (Adam's square-root rule: four times the rays average out half of the noise of
+    a step's mean gradient, and the steps may be twice as long). None: :data:`LR_REFERENCE_RAYS` on bounded scenes, the
+    rates as given at any batch for real captures (``SceneInfo.unbounded``); 0: never scaled. See :data:`LR_REFERENCE_RAYS`."""
     lr_decay_steps: "int | None" = None
     """Learning rates fall tenfold every this many steps (exponentially; 0: constant; None: :data:`LR_DECAY_STEPS`, or
     :data:`LR_DECAY_STEPS_REAL` for real captures)."""
@@ -363,7 +391,12 @@ class FastConfig:
     the texture lies at its distance among the samples of the field behind the box (a wall or a chair in front of
     where a ray meets the plane hides it; until then it was drawn over all of that field): the room scene 27.69 / 30.71
     → 27.69 / **30.96** after 300 / 600, colmap_mouse 24.52 / 24.56 → 24.46 / 24.53 after 600 / 900, the cut 23.61 /
-    23.16 → 23.61 / 23.08."""
+    23.16 → 23.61 / 23.08. Session 45, not kept: a footprint loss (a training ray meeting the plane within the convex
+    hull of the object's sparse points above it, 2 % of the region's diagonal inside its edges, must stop in the box
+    before the plane: the mean of ``(1 - opacity before the plane)^2`` over those rays): colmap_mouse 24.59 / 24.65 dB
+    (weight 0.01) and 24.52 / 24.66 (0.1) after 600 / 900, averaged 24.73 / 24.68, against 24.62 / 24.72, averaged
+    24.78; the lilac end's dark pits go from the renders, its mottled colour stays (session 15's plane prior, over the
+    whole box, had cost more)."""
     plane: PlaneTextureConfig = field(default_factory=PlaneTextureConfig)
     """The texture on the support plane (when ``support_texture``)."""
     behind_from: int = 256
@@ -521,6 +554,8 @@ class FastModel(Model):
         self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
         real = info.unbounded
         self.lr_decay_steps = (LR_DECAY_STEPS_REAL if real else LR_DECAY_STEPS) if cfg.lr_decay_steps is None else cfg.lr_decay_steps
+        self.lr_reference_rays = (None if real else LR_REFERENCE_RAYS) if cfg.lr_reference_rays is None else (cfg.lr_reference_rays or None)
+        """The batch the learning rates are given for (:attr:`FastConfig.lr_reference_rays` resolved for the scene; None: not scaled)."""
         """Steps over which learning rates fall tenfold (:attr:`FastConfig.lr_decay_steps` resolved for the scene)."""
         use_behind = real if cfg.background_field is None else cfg.background_field  # a field behind the box
         density_levels = (DENSITY_LEVELS_REAL if use_behind else n_levels) if cfg.density_levels is None else cfg.density_levels
@@ -985,7 +1020,14 @@ class FastModel(Model):
         x01 = (pts - old_box[0]) / (old_box[1] - old_box[0])
         return torch.cat([trilinear(table, old_res, x) for x in x01.split(1 << 20)])
 
-    def param_groups(self) -> "list[dict]":
+    def param_groups(self, rays_per_step: "int | None" = None) -> "list[dict]":
+        groups = self._param_groups()
+        scale = batch_lr_scale(rays_per_step, self.lr_reference_rays)
+        for group in groups:
+            group["lr"] *= scale
+        return groups
+
+    def _param_groups(self) -> "list[dict]":
         coarsest = [self.field.density_grid.tables[0], self.field.feature_grid.tables[0]]
         density_lr = self.cfg.grid_lr if self.cfg.fine_density_lr is None else self.cfg.fine_density_lr
         groups = [

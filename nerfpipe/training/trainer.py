@@ -58,7 +58,9 @@ DEVICE_RAYS_PER_STEP = {"cpu": 4096, "cuda": 16384}
 """Rays per step where ``rays_per_step`` is None, by device type (others: the CPU's). A GPU runs a step's
 kernels in parallel and is bound by their launches, so four times the rays cost it 1.5x the time per step (an H200,
 session 22: 11.1 / 16.4 ms for the fast field on lego_200): on ``blender_lego`` 29.85 / 31.47 / 32.18 dB after
-10 / 30 / 60 s against 28.87 / 30.56 / 31.00 with 4,096. On two CPU cores the time per step grows with the rays."""
+10 / 30 / 60 s against 28.87 / 30.56 / 31.00 with 4,096. On two CPU cores the time per step grows with the rays. The
+``fast`` model's learning rates on bounded scenes follow the batch (:data:`nerfpipe.models.fast.LR_REFERENCE_RAYS`: twice
+as large at 16,384 rays since session 45; the H200 figures here are from before)."""
 
 
 def device_rays_per_step(device: str) -> int:
@@ -412,7 +414,7 @@ class Trainer:
             self.model.generator.manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
         # The fused kernel is ~10x faster than the per-tensor loop on large grids (CPU and CUDA).
         fused = torch.device(cfg.device).type in ("cpu", "cuda")
-        self.optimizer = torch.optim.Adam(self.model.param_groups(), lr=cfg.lr, fused=fused)
+        self.optimizer = torch.optim.Adam(self.model.param_groups(cfg.rays_per_step), lr=cfg.lr, fused=fused)
         for group in self.optimizer.param_groups:  # the schedule scales these (saved with the optimiser)
             group.setdefault("initial_lr", group["lr"])
         self.generator = torch.Generator().manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
