@@ -493,4 +493,4 @@ def test_the_trainer_hands_its_batch_to_the_learning_rates(tiny_scene, tmp_path)
     t = Trainer(tcfg(rays_per_step=128), tiny_scene, "fast", cfg, tmp_path)
     given = [g["lr"] for g in t.model.param_groups()]
     assert [g["initial_lr"] for g in t.optimizer.param_groups] == pytest.approx([2 * lr for lr in given])
-    assert given[0] == cfg.grid_lr
+    assert given[0] == cfg.grid_lr and t.model.stats()["lr_batch_scale"] == 2.0

@@ -554,9 +554,11 @@ class FastModel(Model):
         self.register_buffer("active_levels", torch.tensor(self.field.active_levels))
         real = info.unbounded
         self.lr_decay_steps = (LR_DECAY_STEPS_REAL if real else LR_DECAY_STEPS) if cfg.lr_decay_steps is None else cfg.lr_decay_steps
+        """Steps over which learning rates fall tenfold (:attr:`FastConfig.lr_decay_steps` resolved for the scene)."""
         self.lr_reference_rays = (None if real else LR_REFERENCE_RAYS) if cfg.lr_reference_rays is None else (cfg.lr_reference_rays or None)
         """The batch the learning rates are given for (:attr:`FastConfig.lr_reference_rays` resolved for the scene; None: not scaled)."""
-        """Steps over which learning rates fall tenfold (:attr:`FastConfig.lr_decay_steps` resolved for the scene)."""
+        self.lr_batch_scale = 1.0
+        """The factor on the learning rates of the latest :meth:`param_groups` given a batch (the trainer's; in ``metrics.json``)."""
         use_behind = real if cfg.background_field is None else cfg.background_field  # a field behind the box
         density_levels = (DENSITY_LEVELS_REAL if use_behind else n_levels) if cfg.density_levels is None else cfg.density_levels
         self.field.density_levels = max(1, min(density_levels, n_levels))
@@ -1023,6 +1025,8 @@ class FastModel(Model):
     def param_groups(self, rays_per_step: "int | None" = None) -> "list[dict]":
         groups = self._param_groups()
         scale = batch_lr_scale(rays_per_step, self.lr_reference_rays)
+        if rays_per_step is not None:  # the trainer's call
+            self.lr_batch_scale = scale
         for group in groups:
             group["lr"] *= scale
         return groups
@@ -1063,6 +1067,7 @@ class FastModel(Model):
             **self._sparse_stats(),
             sparsity_weight=float(self.sparsity_weight),
             support_texture=float(self.plane is not None),
+            lr_batch_scale=self.lr_batch_scale,
         )
         return out
 
