@@ -156,7 +156,8 @@ CPU's default (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`); a GPU's 
 large (:func:`batch_lr_scale`). Session 45, side by side at equal steps with 16,384 rays a step (this CPU; one ray per
 pixel, the parameter average scored): the 800² stand-in (``python -m benchmarks.lego800``, 4 views at full size) the
 rates as given 28.55 / 31.25 dB after 600 / 3,000 steps, twice as large **29.04 / 31.82** (0.80x the seconds per step at
-600: 10 samples per ray against 15); blender_lego (5 views, full size) after 300 29.09 against **29.65** (0.79x). Only the
+600: 10 samples per ray against 15; three / four times as large 29.00 / 28.80); blender_lego (5 views, full size) after
+300 29.09 against **29.65** (0.79x). Only the
 fine colour features' or only the MLP's twice as large: 28.56 / 28.71 after 600. At 4,096 rays the same doubling loses
 (lego800 26.78 against 26.84 after 600, lego_200 29.29 against 29.45 after 300): it is the batch, not the rates. Real
 captures keep their rates (colmap_mouse at 16,384 rays, 7 views at 400 px: 24.76 against 24.82 after 900)."""
