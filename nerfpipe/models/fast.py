@@ -157,10 +157,10 @@ large (:func:`batch_lr_scale`). Session 45, side by side at equal steps with 16,
 pixel, the parameter average scored): the 800² stand-in (``python -m benchmarks.lego800``, 4 views at full size) the
 rates as given 28.55 / 31.25 dB after 600 / 3,000 steps, twice as large **29.04 / 31.82** (0.80x the seconds per step at
 600: 10 samples per ray against 15; three / four times as large 29.00 / 28.80); blender_lego (5 views, full size) after
-300 29.09 against **29.65** (0.79x). Only the
-fine colour features' or only the MLP's twice as large: 28.56 / 28.71 after 600. At 4,096 rays the same doubling loses
-(lego800 26.78 against 26.84 after 600, lego_200 29.29 against 29.45 after 300): it is the batch, not the rates. Real
-captures keep their rates (colmap_mouse at 16,384 rays, 7 views at 400 px: 24.76 against 24.82 after 900)."""
+300 29.09 against **29.65** (0.79x). Only the fine colour features' or only the MLP's twice as large: 28.56 / 28.71
+after 600. At 4,096 rays the same doubling loses (lego800 26.78 against 26.84 after 600, lego_200 29.29 against 29.45
+after 300): it is the batch, not the rates. Real captures keep their rates (colmap_mouse at 16,384 rays, 7 views at
+400 px: 24.76 against 24.82 after 900)."""
 
 
 def batch_lr_scale(rays_per_step: "int | None", reference: "int | None") -> float:
@@ -295,10 +295,11 @@ class FastConfig:
     mlp_lr: float = 1e-2
     """Adam learning rate of the colour MLP."""
     lr_reference_rays: "int | None" = None
-    """The rays per training step the learning rates here are given for: a step of ``R`` rays, more than these, multiplies
-    every one of them by ``sqrt(R / lr_reference_rays)`` (Adam's square-root rule: four times the rays average out half of the noise of
-    a step's mean gradient, and the steps may be twice as long). None: :data:`LR_REFERENCE_RAYS` on bounded scenes, the
-    rates as given at any batch for real captures (``SceneInfo.unbounded``); 0: never scaled. See :data:`LR_REFERENCE_RAYS`."""
+    """The rays per training step the learning rates here are given for: a step of ``R`` rays, more than these,
+    multiplies every one of them by ``sqrt(R / lr_reference_rays)`` (Adam's square-root rule: four times the rays
+    average out half of the noise of a step's mean gradient, and the steps may be twice as long). None:
+    :data:`LR_REFERENCE_RAYS` on bounded scenes, the rates as given at any batch for real captures
+    (``SceneInfo.unbounded``); 0: never scaled. See :data:`LR_REFERENCE_RAYS`."""
     lr_decay_steps: "int | None" = None
     """Learning rates fall tenfold every this many steps (exponentially; 0: constant; None: :data:`LR_DECAY_STEPS`, or
     :data:`LR_DECAY_STEPS_REAL` for real captures)."""
