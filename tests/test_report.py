@@ -350,7 +350,7 @@ def test_psnr_plot_marks_the_appearance_fitted_figure(tmp_path, monkeypatch):
     history = {"train": [[1, 0.1, 9.0], [2, 0.2, 10.0]], "val": [[1, 0.1, 10.0, 0.4, 1], [2, 0.2, 11.0, 0.5, 2]]}
     plots.plot_psnr(history, tmp_path / "psnr.png", (2, 0.2, 16.2159, 2))
     plots.plot_psnr(history, tmp_path / "psnr.png")
-    labels = [[t.get_text() for t in fig.axes[1].get_legend().get_texts()] for fig in figs]
+    labels = [[t.get_text() for t in fig.legends[0].get_texts()] for fig in figs]  # one legend under both plots
     assert labels[0] == ["train (batch)", "val (1 view, mean appearance)", "val (2 views, mean appearance)",
                          "final, appearance fitted (2 views): 16.22 dB"]
     assert labels[1] == ["train (batch)", "val (1 view)", "val (2 views)"]

@@ -48,7 +48,9 @@ def plot_psnr(history: dict, path: Path, appearance_fitted: "tuple[int, float, f
         ax.set_xlabel(label)
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
-        ax.legend()
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:  # one legend under both plots: inside, it covered the val curve under the train curve (Sacre Coeur)
+        fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=min(len(handles), 3), frameon=False)
     fig.suptitle("PSNR")
     _save(fig, path)
 
