@@ -244,7 +244,7 @@ def test_the_appearance_fit_is_planned_from_two_short_fits():
     a fit of ``s`` steps that costs ``a + b s`` is estimated at the full count."""
     from contextlib import contextmanager
 
-    from nerfpipe.training.evaluation import FIT_PROBE_STEPS, appearance_fit_seconds
+    from nerfpipe.training.evaluation import FIT_PROBE_STEPS, FIT_WARMUP_STEPS, appearance_fit_seconds
 
     clock = [0.0]
 
@@ -258,9 +258,44 @@ def test_the_appearance_fit_is_planned_from_two_short_fits():
 
     model = Fits()
     assert appearance_fit_seconds(model, None, None, None, clock=lambda: clock[0]) == pytest.approx(2.0 + 0.01 * 1024)
-    assert clock[0] == pytest.approx(2 * 2.0 + 0.01 * sum(FIT_PROBE_STEPS))  # only the short fits ran
+    assert clock[0] == pytest.approx(3 * 2.0 + 0.01 * (sum(FIT_PROBE_STEPS) + FIT_WARMUP_STEPS))  # only the short fits ran (and an untimed warm-up)
     model.appearance_fit_steps = 0  # nothing to fit: nothing timed
     assert appearance_fit_seconds(model, None, None, None, clock=lambda: clock[0]) == 0.0
+
+
+def test_training_leaves_each_view_its_appearance_fit(tiny_scene, tmp_path):
+    """Photo collections: the final evaluation fits each held-out view's appearance (a fixed cost per view) and renders
+    it whole with it; the window leaves that too, or it scores fewer views than the protocol's (Sacre Coeur: 1 of 2)."""
+    from nerfpipe.training.evaluation import FINAL_MARGIN, final_eval_need
+
+    t = Trainer(tcfg(time_budget=100.0, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path)
+    t.seconds_per_pixel = 1.0 / 128  # 2 views of 8 x 8 pixels: 1 s at one ray per pixel
+    plain = final_eval_need(t)
+    t.appearance_fit_seconds = 3.0
+    assert final_eval_need(t) == pytest.approx(plain + FINAL_MARGIN * (2 * 3.0 + 1.0) / 0.8)  # 2 fits, 2 pictures
+    assert final_eval_need(t, margin=1.0) == pytest.approx((1.0 + 2 * 3.0 + 1.0) / 0.8)
+
+
+def test_a_budgeted_validation_times_the_appearance_fit_once(tiny_scene, tmp_path, monkeypatch):
+    """The first validation under a budget times one view's appearance fit (0 without per-image appearance), as
+    validation time; later ones do not again; without a budget nothing is timed."""
+    from nerfpipe.training import evaluation
+
+    calls = []
+    monkeypatch.setattr(evaluation, "appearance_fit_seconds", lambda model, rays, rgb, bg: calls.append(rays.shape) or 4.0)
+    t = Trainer(tcfg(time_budget=3600.0, eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path / "a")
+    evaluation.validate(t, 1)
+    assert t.appearance_fit_seconds == 0.0 and calls == []  # the classic MLP fits no appearance
+    monkeypatch.setattr(type(t.model), "appearance_fit_steps", 1024, raising=False)
+    t.appearance_fit_seconds, before = None, t.validation_seconds
+    evaluation.validate(t, 1)
+    assert t.appearance_fit_seconds == 4.0 and calls == [((SIZE // 2) * (SIZE // 4),)]  # the left half of the first view
+    assert t.validation_seconds > before
+    evaluation.validate(t, 1)
+    assert len(calls) == 1
+    u = Trainer(tcfg(eval_max_size=SIZE // 2), tiny_scene, "vanilla", MODEL, tmp_path / "b")
+    evaluation.validate(u, 1)
+    assert u.appearance_fit_seconds is None
 
 
 def test_progress_eta_under_a_time_budget_is_the_time_to_the_end_of_the_run():

@@ -445,7 +445,10 @@ class Trainer:
         self.supersample_from = (PLATEAU_STEPS if self.average is not None and info.unbounded else 0) if cfg.supersample_from is None else cfg.supersample_from
         """Step from which training leaves the final evaluation its supersampling (0: never; ``supersample_from``)."""
         self.seconds_per_pixel: "float | None" = None  # per ray of the latest validation render
-        self.final_eval_rays: "tuple[int, int] | None" = None  # rays of the final evaluation of every view, one per pixel and supersampled (counted once)
+        self.final_eval_rays: "tuple[int, int, int] | None" = None  # rays of the final evaluation of every view, one per pixel and supersampled, and its views (counted once)
+        self.appearance_fit_seconds: "float | None" = None
+        """Under a budget, one held-out view's appearance fit for the final evaluation, timed at the first validation
+        (:func:`~nerfpipe.training.evaluation.time_appearance_fit`; 0 without per-image appearance, None before)."""
         self.stopping_window: "float | None" = None  # the training window when training stopped
         self.supersample_plan: "tuple[str, float] | None" = None
         """Past ``supersample_from``: what the window leaves the supersampled final evaluation and the wall seconds when
