@@ -548,6 +548,7 @@ def finish(trainer) -> dict:
         metrics["budget_plan"] = {"time_budget": cfg.time_budget, "final_share": FINAL_SHARE if trainer.stopping_window is None or not cfg.time_budget else 1 - trainer.stopping_window / cfg.time_budget,
                                   "training_stopped_at": trainer.training_stopped_at,
                                   **({"supersample_plan": trainer.supersample_plan[0]} if trainer.supersample_plan else {}),
+                                  **({"appearance_fit_timed": trainer.appearance_fit_seconds} if trainer.appearance_fit_seconds else {}),
                                   "final_started_at": trainer.final_started_at, **plan, "seconds": trainer.wall_elapsed()}
     write_json(out / "metrics.json", metrics)
     write_json(out / "history.json", {"val": [dict(zip(VAL_COLUMNS, row)) for row in trainer.history["val"]]})
