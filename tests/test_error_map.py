@@ -112,7 +112,7 @@ def test_a_resumed_run_goes_on_with_its_error_map(scene_path, tmp_path):
 
 
 def test_on_by_default_for_the_fast_model_on_bounded_scenes_only(tiny_lego, tmp_path):
-    """``error_sampling`` None: :data:`~nerfpipe.training.trainer.ERROR_SAMPLING` for the fast model on a bounded scene,
+    """``error_sampling`` None: the device's :data:`~nerfpipe.training.trainer.DEVICE_ERROR_SAMPLING` for the fast model on a bounded scene,
     recorded in the run's config as the share used; none on a real capture, none for the classic NeRF MLP."""
     from dataclasses import replace
 
@@ -121,12 +121,12 @@ def test_on_by_default_for_the_fast_model_on_bounded_scenes_only(tiny_lego, tmp_
     from nerfpipe.data_adapters import load
     from nerfpipe.models.fast import FastConfig
     from nerfpipe.models.vanilla import VanillaConfig
-    from nerfpipe.training.trainer import ERROR_SAMPLING, Trainer, TrainerConfig
+    from nerfpipe.training.trainer import DEVICE_ERROR_SAMPLING, Trainer, TrainerConfig
 
     cfg = TrainerConfig(iters=1, rays_per_step=64, eval_every=0, video_frames=0, write_outputs=False, device="cpu")
     fast = Trainer(cfg, tiny_lego, "fast", FastConfig(preset="small"), tmp_path / "fast")
-    assert fast.cfg.error_sampling == ERROR_SAMPLING > 0 and fast.sampler.errors is not None
-    assert fast.sampler.error_share == ERROR_SAMPLING
+    assert fast.cfg.error_sampling == DEVICE_ERROR_SAMPLING["cpu"] > 0 and fast.sampler.errors is not None
+    assert fast.sampler.error_share == DEVICE_ERROR_SAMPLING["cpu"]
     real = Trainer(cfg, load(make_scene(tmp_path / "colmap")), "fast", FastConfig(preset="small"), tmp_path / "real")
     assert real.cfg.error_sampling == 0 and real.sampler.errors is None
     assert Trainer(cfg, tiny_lego, "vanilla", VanillaConfig(), tmp_path / "vanilla").sampler.errors is None

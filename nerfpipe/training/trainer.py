@@ -91,8 +91,26 @@ AVERAGE_FROM = {True: 256, False: 128}
 AVERAGE_POWER = {True: 0.0, False: 7.0}
 """``TrainerConfig.average_power``'s default, for real captures (the fixed decay) and elsewhere (power-function)."""
 
-ERROR_SAMPLING = 0.3
-"""``TrainerConfig.error_sampling``'s default on bounded scenes for a model that asks for it (``Model.error_sampled``)."""
+DEVICE_ERROR_SAMPLING = {"cpu": 0.3, "cuda": 0.5}
+"""``TrainerConfig.error_sampling``'s default on bounded scenes for a model that asks for it (``Model.error_sampled``),
+by device type (others: the CPU's). Rays drawn where the field is wrong meet the object, so a step marches more
+samples: on this CPU 0.5 of 16,384 rays took 1.14x the seconds per step of 0.3 on blender_lego (6.1 against 4.8
+samples per ray), where a GPU bound by its kernel launches (fixed shapes, a CUDA graph) pays nothing for them, so
+there its gain per step is the gain. Side by side at 16,384 rays (CUDA's :data:`DEVICE_RAYS_PER_STEP`; session 46, this
+CPU, the average scored) 0.3 / 0.5: lego800 29.04 / **29.37 dB** after 600 steps, 29.88 / **30.24** after 1,000
+(unaveraged), 31.82 / **31.93** after 3,000; blender_lego 29.65 / **29.88** after 300; lego_200 31.34 / **31.53**
+after 300. At 4,096 rays lego_200 gained as much per step (session 42: 29.29 / 29.60 after 300, at 1.2x the time
+per step), so the CPU keeps 0.3."""
+
+
+def device_error_sampling(device: str) -> float:
+    """:data:`DEVICE_ERROR_SAMPLING` for ``device`` (a resolved name such as ``cuda:1``).
+
+    Example:
+        >>> device_error_sampling("cuda:1"), device_error_sampling("cpu")
+        (0.5, 0.3)
+    """
+    return DEVICE_ERROR_SAMPLING.get(torch.device(device).type, DEVICE_ERROR_SAMPLING["cpu"])
 
 RESOLVED_DEFAULTS = ("rays_per_step", "error_sampling")
 """Options whose None the trainer resolves (by the device, the scene and the model) into the config its run records:
@@ -133,7 +151,7 @@ class TrainerConfig:
     footprint at that size (None: full resolution). The model's capacity follows these pixels."""
     error_sampling: "float | None" = None
     """Share of the pixel rays drawn where the field is still wrong (an error map after instant-ngp's:
-    :class:`~nerfpipe.training.pixel_sampler.ErrorMap`); the rest are uniform. None: :data:`ERROR_SAMPLING` on
+    :class:`~nerfpipe.training.pixel_sampler.ErrorMap`); the rest are uniform. None: :data:`DEVICE_ERROR_SAMPLING` on
     bounded scenes for a model that asks for it (``Model.error_sampled``: the ``fast`` model), else 0; the run's
     ``config.json`` records the share used. On lego_200 after 300 steps (session 43, side by side, the average
     scored) 0 / 0.3 **28.75 / 29.45 dB** at 0.099 / 0.114 s per step (4.3 / 6.4 samples per ray: its rays hit the
@@ -421,7 +439,7 @@ class Trainer:
         self.rays = share(cfg.rays_per_step, self.world)
         """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
         if cfg.error_sampling is None:  # recorded in config.json as used
-            cfg = self.cfg = replace(cfg, error_sampling=ERROR_SAMPLING if self.model.error_sampled and not info.unbounded else 0.0)
+            cfg = self.cfg = replace(cfg, error_sampling=device_error_sampling(cfg.device) if self.model.error_sampled and not info.unbounded else 0.0)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
                                     max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles,
                                     cache_rays=cfg.cache_rays)
