@@ -309,11 +309,16 @@ def time_appearance_fit(trainer) -> None:
     idx = eval_views(scene, 1)
     (w, h), = _eval_sizes(scene, idx, cfg)
     cam = resize_cameras(scene.cameras[torch.tensor(idx, dtype=torch.long)], w, h).to(cfg.device)
-    bg = background_colors(trainer.eval_bg, 1)[0]
-    half = max(1, w // 2)
-    rays, gt = camera_rays(cam, 0)[:, :half], ground_truth(scene, idx[0], bg, (w, h))[:, :half]
-    trainer.appearance_fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
+    trainer.appearance_fit_seconds = _left_half_fit_seconds(trainer, cam, idx[0], background_colors(trainer.eval_bg, 1)[0])
     trainer.validation_seconds += time.perf_counter() - start
+
+
+def _left_half_fit_seconds(trainer, cam, index: int, bg) -> float:
+    """:func:`appearance_fit_seconds` on the left half of scene view ``index`` seen by the one camera ``cam`` (at its size)."""
+    w, h = int(cam.width[0]), int(cam.height[0])
+    half = max(1, w // 2)
+    rays, gt = camera_rays(cam, 0)[:, :half], ground_truth(trainer.scene, index, bg, (w, h))[:, :half]
+    return appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
 
 
 def validation_due(trainer) -> bool:
@@ -356,9 +361,7 @@ def _final_eval(trainer, plan: dict) -> "tuple[float, float, int]":
     render = (time.perf_counter() - probe_start) / (pw * ph * most**2) * w * h  # one ray per pixel
     fit_seconds = picture = 0.0  # each view's appearance fit, where the model fits one: its time is the view's too
     if trainer.model.appearance_fit_steps:
-        half = max(1, pw // 2)
-        rays, gt = camera_rays(probe, 0)[:, :half], ground_truth(scene, idx[0], bg, (pw, ph))[:, :half]
-        fit_seconds = appearance_fit_seconds(trainer.model, rays.reshape(-1), gt.reshape(-1, 3), bg)
+        fit_seconds = _left_half_fit_seconds(trainer, probe, idx[0], bg)
         picture = render if fit_seconds else 0.0  # and the view rendered with it (whole for the picture), one ray per pixel
     fixed = FINAL_MARGIN * fit_seconds  # the fit's steps on a fixed set of rays do not shrink with the view
     supersample, scaled = 1, render + picture  # the most rays per pixel with which every view fits at full size, else one

@@ -63,14 +63,14 @@ session 22: 11.1 / 16.4 ms for the fast field on lego_200): on ``blender_lego`` 
 as large at 16,384 rays since session 45; the H200 figures here are from before)."""
 
 
-def device_rays_per_step(device: str) -> int:
-    """:data:`DEVICE_RAYS_PER_STEP` for ``device`` (a resolved name such as ``cuda:1``).
+def by_device(table: dict, device: str):
+    """``table``'s entry for ``device``'s type (a resolved name such as ``cuda:1``), the CPU's for any other type.
 
     Example:
-        >>> device_rays_per_step("cuda:1"), device_rays_per_step("cpu")
-        (16384, 4096)
+        >>> by_device(DEVICE_RAYS_PER_STEP, "cuda:1"), by_device(DEVICE_RAYS_PER_STEP, "cpu"), by_device(DEVICE_ERROR_SAMPLING, "mps")
+        (16384, 4096, 0.3)
     """
-    return DEVICE_RAYS_PER_STEP.get(torch.device(device).type, DEVICE_RAYS_PER_STEP["cpu"])
+    return table.get(torch.device(device).type, table["cpu"])
 
 
 MAX_RAYS_PER_STEP = 1 << 22
@@ -101,16 +101,6 @@ CPU, the average scored) 0.3 / 0.5: lego800 29.04 / **29.37 dB** after 600 steps
 (unaveraged), 31.82 / **31.93** after 3,000; blender_lego 29.65 / **29.88** after 300; lego_200 31.34 / **31.53**
 after 300. At 4,096 rays lego_200 gained as much per step (session 42: 29.29 / 29.60 after 300, at 1.2x the time
 per step), so the CPU keeps 0.3."""
-
-
-def device_error_sampling(device: str) -> float:
-    """:data:`DEVICE_ERROR_SAMPLING` for ``device`` (a resolved name such as ``cuda:1``).
-
-    Example:
-        >>> device_error_sampling("cuda:1"), device_error_sampling("cpu")
-        (0.5, 0.3)
-    """
-    return DEVICE_ERROR_SAMPLING.get(torch.device(device).type, DEVICE_ERROR_SAMPLING["cpu"])
 
 RESOLVED_DEFAULTS = ("rays_per_step", "error_sampling")
 """Options whose None the trainer resolves (by the device, the scene and the model) into the config its run records:
@@ -415,7 +405,7 @@ class Trainer:
         self.started = time.monotonic() if started is None else started
         cfg = replace(cfg, device=check_device(cfg.device))  # auto resolved once: the run's config records the device used
         if cfg.rays_per_step is None:  # likewise the batch chosen by the device
-            cfg = replace(cfg, rays_per_step=device_rays_per_step(cfg.device))
+            cfg = replace(cfg, rays_per_step=by_device(DEVICE_RAYS_PER_STEP, cfg.device))
         self.world = distributed.world(cfg.device)
         if self.world.active:
             refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
@@ -439,7 +429,7 @@ class Trainer:
         self.rays = share(cfg.rays_per_step, self.world)
         """Rays this process draws per step (all of ``rays_per_step`` in one process)."""
         if cfg.error_sampling is None:  # recorded in config.json as used
-            cfg = self.cfg = replace(cfg, error_sampling=device_error_sampling(cfg.device) if self.model.error_sampled and not info.unbounded else 0.0)
+            cfg = self.cfg = replace(cfg, error_sampling=by_device(DEVICE_ERROR_SAMPLING, cfg.device) if self.model.error_sampled and not info.unbounded else 0.0)
         self.sampler = PixelSampler(scene, "train", self.train_bg, cfg.device, track_rays=share(cfg.track_rays, self.world),
                                     max_side=cfg.train_max_size, error_share=cfg.error_sampling, error_tiles=cfg.error_tiles,
                                     cache_rays=cfg.cache_rays)
