@@ -645,6 +645,52 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert "sparsity" not in model.get_losses(out, torch.zeros(2, 3))
 
 
+def test_evidence_sparsity_clears_the_box_away_from_the_sparse_points_where_the_sparsity_is_off():
+    """Facades and photo collections (cameras on one side: no sparsity loss, which would thin their surfaces) get the
+    sparsity loss only where SfM saw no surface: farther than ``evidence_radius`` from every sparse point. Density near
+    the points stays; the fog far from them goes."""
+    from nerfpipe.models.fast import EVIDENCE_SPARSITY, evidence_at, evidence_grid
+
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    points = torch.stack([torch.linspace(-0.5, 0.5, 60), torch.zeros(60), torch.zeros(60)], -1)  # a rod of points along x
+    info = dict(aabb=box, near=0.5, far=10.0, num_images=20, pixels_per_image=100, unbounded=True, points=points)
+    weight = lambda **kw: FastConfig(preset="small").setup(SceneInfo(**{**info, **kw})).evidence_sparsity_weight  # noqa: E731
+    assert weight(arc=math.radians(63)) == EVIDENCE_SPARSITY > 0  # a facade
+    assert weight(arc=2 * math.pi) == 0.0  # an object all round: the sparsity loss everywhere instead
+    assert weight(arc=math.radians(63), points=points[:10]) == 0.0  # too few points to say where surfaces are
+    assert weight(arc=math.radians(63), points=None) == 0.0
+    assert weight(arc=math.radians(63), unbounded=False, has_alpha=True, points=None) == 0.0  # synthetic: no field behind the box
+    assert FastConfig(preset="small").setup(SceneInfo(**info, arc=1.0)).stats()["evidence_sparsity_weight"] == EVIDENCE_SPARSITY
+
+    grid = evidence_grid(points, box, 0.05)  # 0.05 of the diagonal (3.46): 0.17, six 1/32 cells (and the cell a point lies in)
+    probe = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.1, -0.1], [0.8, 0.0, 0.0], [0.0, 0.4, 0.0], [0.9, 0.9, 0.9], [5.0, 0.0, 0.0]])
+    assert evidence_at(grid, box, probe).tolist() == [True, True, False, False, False, False]
+
+    model = FastConfig(preset="small").setup(SceneInfo(**info, arc=1.0))
+    model.train()
+    model.generator = torch.Generator().manual_seed(0)
+    grids = list(model.field.density_grid.parameters())
+    with torch.no_grad():  # fog everywhere
+        for g in grids:
+            g.fill_(1.0)
+    near = points[::6] + 0.02
+    far = torch.rand(2048, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    far = far[~evidence_at(model.evidence, box, far)]
+    with torch.no_grad():
+        near0, far0 = float(model.field.density(near).mean()), float(model.field.density(far).mean())
+    opt = torch.optim.Adam(grids, lr=0.1)
+    for _ in range(30):
+        loss = model._sparsity(away_from_points=True)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        assert float(model.field.density(far).mean()) < 0.5 * far0
+        assert float(model.field.density(near).mean()) > 0.8 * near0
+    out = RenderOutputs(rgb=torch.zeros(2, 3), depth=torch.zeros(2), acc=torch.zeros(2))
+    assert "evidence_sparsity" in model.get_losses(out, torch.zeros(2, 3)) and "sparsity" not in model.get_losses(out, torch.zeros(2, 3))
+
+
 def test_a_real_capture_training_step_with_sample_slots_reads_nothing_back():
     """Issue 13: with the samples packed into slots known beforehand (what the trainer's CUDA graph sets), the same
     step reads nothing back, so it can be captured whole; it trains as the step that reads the count back."""

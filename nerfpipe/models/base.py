@@ -67,6 +67,8 @@ class SceneInfo:
     """The plane the object stands on, ``(a, b, c, d)`` with a unit normal and ``a x + b y + c z + d > 0`` on the
     cameras' side, found in the sparse points (:func:`nerfpipe.training.trainer.support_plane_of`); None: none found
     (no points, a free-standing object, an aerial or a facade capture)."""
+    points: "Float[Tensor, 'num_points 3'] | None" = None
+    """The sparse points of a real capture in the scene box (SfM's evidence of surfaces; None: none)."""
 
 
 class Callback(Enum):

@@ -230,6 +230,54 @@ from 10-15° above the floor), side by side 0 / 0.01: **25.20 / 28.48 dB after 6
 27.27); colmap_mouse end to end (``nerfpipe run --time-budget 300``, scored with 2 x 2 rays per pixel) 24.70 against
 24.71 dB, mesh 97.6 % / violation 0.015 against 97.5 % / 0.019."""
 
+EVIDENCE_SPARSITY = 0.3
+"""``FastConfig.evidence_sparsity_weight`` of real captures with sparse points whose ``sparsity_weight`` is 0 (facades,
+walls, photo collections). Their box filled with the sky's fog: the photographs' sky explained by density in the air
+in front of the facade and above the roof, where SfM found no point. Session 47, side by side at equal steps (``python -m
+benchmarks.side_by_side``, one ray per pixel, 400 px, the average scored after the last mark), 0 / 0.3 / 1.0:
+photos_sacre_coeur (a ``nerfpipe run``'s sfm folder, 2 views) appearance fitted 15.58 / 15.56 / 12.64 dB after 400
+steps and **15.47 / 15.80 / 13.43 after 700** (colour fitted 15.16 / 15.22 / 14.21, mean code 12.32 / 12.57 / 11.52
+averaged) at 1 / 0.63 / 0.58 the time a step (46 / 27 / 24 samples per ray), the church standing clear in the orbit
+instead of in a cube of cloud (at 1.0 clearest, but the sky is then all in the field behind the box and the code fitted
+on a view's left half paints the right half's sky wrong); another sfm folder of it after 600 steps 14.38 / 14.35 /
+14.17 appearance fitted. photos_sceaux_castle (its sfm folder, 2 views) **14.63 / 14.85 / 14.84** after 600 (14.41 /
+14.58 / 14.67 after 300) at 0.9 / 0.81 the time a step; ngp_fox (points from the ``sfm`` stage, 9 views) 27.93 /
+27.86 / 27.90 after 600, the same renders. An object photographed from around it keeps :data:`SPARSITY_REAL`
+everywhere: a weight of 0.1 / 1.0 here ate a hole into colmap_mouse's lilac side, where SfM has no points (session 19)."""
+EVIDENCE_MIN_POINTS = 50
+"""Sparse points in the box below which the evidence sparsity stays off (too few to say where surfaces are)."""
+EVIDENCE_CELLS = 64
+"""Cells along the object region's longest side of the grid that records where sparse points lie."""
+
+
+def evidence_grid(points: Float[Tensor, "num_points 3"], aabb: Float[Tensor, "2 3"], radius: float) -> "Tensor":
+    """Cells of a grid over ``aabb`` (:data:`EVIDENCE_CELLS` along its longest side) within ``radius`` object-region
+    diagonals of a sparse point (a box dilation of the cells that hold one; bool ``[X, Y, Z]``)."""
+    aabb = aabb.float().cpu()
+    extent = aabb[1] - aabb[0]
+    cell = float(extent.max()) / EVIDENCE_CELLS
+    shape = [max(1, int(math.ceil(float(e) / cell))) for e in extent]
+    idx = ((points.float().cpu() - aabb[0]) / cell).long()
+    for axis, n in enumerate(shape):
+        idx[:, axis] = idx[:, axis].clamp(0, n - 1)
+    grid = torch.zeros(shape)
+    grid[idx[:, 0], idx[:, 1], idx[:, 2]] = 1.0
+    r = int(math.ceil(radius * float(extent.norm()) / cell))
+    grid = torch.nn.functional.max_pool3d(grid[None, None], 2 * r + 1, stride=1, padding=r)[0, 0]
+    return grid > 0
+
+
+def evidence_at(grid: "Tensor", aabb: Float[Tensor, "2 3"], x: Float[Tensor, "num_points 3"]) -> "Tensor":
+    """Whether each point's cell of ``grid`` (:func:`evidence_grid` over ``aabb``) lies near a sparse point (points
+    outside ``aabb`` take the nearest cell)."""
+    cell = (aabb[1] - aabb[0]).max() / EVIDENCE_CELLS
+    idx = ((x - aabb[0]) / cell).long().clamp(min=0)
+    flat = grid.reshape(-1)
+    nx, ny, nz = grid.shape
+    i = idx[:, 0].clamp(max=nx - 1) * (ny * nz) + idx[:, 1].clamp(max=ny - 1) * nz + idx[:, 2].clamp(max=nz - 1)
+    return flat[i]
+
+
 SPARSITY_MIN_ARC = math.radians(120)
 """Azimuth arc the training cameras must cover about the object (``SceneInfo.arc``) for :data:`SPARSITY_REAL` by default:
 objects photographed from around them, not facades. 21 of colmap_mouse's photographs on one side of it (167°, 18
@@ -476,6 +524,13 @@ class FastConfig:
     (``background_field``, on by default for real captures), 0 otherwise."""
     sparsity_points: int = 4096
     """Random points per step of the sparsity loss."""
+    evidence_sparsity_weight: "float | None" = None
+    """Weight of the sparsity loss at the box's random points that lie farther than ``evidence_radius`` from every
+    sparse point (where SfM saw no surface: the air in front of a facade and above its roof, which the box fills with
+    the sky's fog). Default: :data:`EVIDENCE_SPARSITY` for real captures with sparse points where ``sparsity_weight``
+    is 0 (facades, walls, photo collections: the cameras on one side), 0 otherwise."""
+    evidence_radius: float = 0.05
+    """Distance from the nearest sparse point, in object-region diagonals, beyond which the evidence sparsity applies."""
     entropy_weight: float = 0.0
     """Weight of the binary entropy of each training ray's opacity in the box (``-a log a - (1-a) log(1-a)``),
     from step ``behind_from`` on when there is a field behind the box: a ray either stops at a surface in the box
@@ -597,6 +652,13 @@ class FastModel(Model):
         rounds), before any were dropped from :attr:`sample_capacity`'s slots."""
         sparse = around  # the field behind the box takes what the box may not keep
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
+        has_points = info.points is not None and len(info.points) >= EVIDENCE_MIN_POINTS
+        evidence = EVIDENCE_SPARSITY if (use_behind and has_points and self.sparsity_weight == 0) else 0.0
+        self.evidence_sparsity_weight = evidence if cfg.evidence_sparsity_weight is None else cfg.evidence_sparsity_weight
+        if self.evidence_sparsity_weight > 0 and info.points is not None:
+            self.register_buffer("evidence", evidence_grid(info.points, aabb, cfg.evidence_radius), persistent=False)
+        else:
+            self.evidence = None
 
     @staticmethod
     def _diagonal(aabb: Float[Tensor, "2 3"]) -> float:
@@ -884,16 +946,22 @@ class FastModel(Model):
             losses["entropy"] = self.cfg.entropy_weight * binary_entropy(outputs.acc).mean()
         if self.sparsity_weight > 0 and self.training:
             losses["sparsity"] = self.sparsity_weight * self._sparsity()
+        if self.evidence_sparsity_weight > 0 and self.evidence is not None and self.training:
+            losses["evidence_sparsity"] = self.evidence_sparsity_weight * self._sparsity(away_from_points=True)
         if self.cfg.tv_weight > 0 and self.training:
             losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16, self.generator)
         return losses
 
-    def _sparsity(self) -> Float[Tensor, ""]:
-        """Mean opacity of one marching step at uniform random points of the marched box."""
+    def _sparsity(self, away_from_points: bool = False) -> Float[Tensor, ""]:
+        """Mean opacity of one marching step at uniform random points of the marched box (``away_from_points``: counted
+        only at those farther than ``evidence_radius`` from every sparse point, :attr:`evidence`)."""
         lo, hi = self.march_box[0], self.march_box[1]
         u = torch.rand(self.cfg.sparsity_points, 3, device=lo.device, generator=self.generator)
-        sigma = self.field.density(lo + u * (hi - lo))
-        return (-torch.expm1(-sigma * self.step_size)).mean()
+        x = lo + u * (hi - lo)
+        opacity = -torch.expm1(-self.field.density(x) * self.step_size)
+        if away_from_points:
+            opacity = opacity * ~evidence_at(self.evidence, self.object_box, x)
+        return opacity.mean()
 
     def _depth_loss(self, extras: dict, target: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
         """Mean over rays with a target of: the opacity in front of the observed point, plus, when the
@@ -1075,6 +1143,7 @@ class FastModel(Model):
             hashed_levels=float(sum(h is not None for h in self.field.density_grid.hash_rows)),
             **self._sparse_stats(),
             sparsity_weight=float(self.sparsity_weight),
+            evidence_sparsity_weight=float(self.evidence_sparsity_weight),
             support_texture=float(self.plane is not None),
             lr_batch_scale=self.lr_batch_scale,
         )

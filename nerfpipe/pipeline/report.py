@@ -52,6 +52,7 @@ LABELS = {
     "sparse_blocks_missing": ("blocks needed without a free slot (read as zeros)", ""),
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
     "sparsity_weight": ("sparsity loss weight (0: off)", ""),
+    "evidence_sparsity_weight": ("sparsity loss weight away from the sparse points (0: off)", ""),
     "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
     "sight_lines": ("sight lines (camera to sparse point)", ""), "free_space_tau": ("free-space slack before the point", ""),
     "fscore": ("F-score", ""), "chamfer_l1": ("Chamfer-L1", ""), "precision": ("precision", ""),

@@ -285,7 +285,17 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneIn
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
                      unbounded=scene.shows_surroundings, focal_spread=spread, arc=camera_arc(cams, scene.aabb.mean(0)),
-                     pixel_footprint=pixel_footprint(cams, scene.aabb), support_plane=support_plane_of(scene))
+                     pixel_footprint=pixel_footprint(cams, scene.aabb), support_plane=support_plane_of(scene),
+                     points=_box_points(scene))
+
+
+def _box_points(scene: SceneData) -> "Float[Tensor, 'num_points 3'] | None":
+    """A real capture's sparse points in its scene box (float32, on the CPU), or None."""
+    if not scene.shows_surroundings or scene.points is None or not len(scene.points.xyz):
+        return None
+    xyz = scene.points.xyz.float().cpu()
+    lo, hi = scene.aabb[0].float().cpu(), scene.aabb[1].float().cpu()
+    return xyz[((xyz >= lo) & (xyz <= hi)).all(-1)]
 
 
 SUPPORT_TOLERANCE = 0.02
