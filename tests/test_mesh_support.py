@@ -186,6 +186,21 @@ def test_a_sheet_beside_the_object_that_no_point_lies_on_goes():
     assert out.info["floater_faces_removed"] == sheet.num_faces
 
 
+def test_a_far_piece_that_holds_its_share_of_the_points_stays():
+    """Beyond the gap a piece goes as a floater unless it holds ``far_min_anchors`` of the sparse points: a part of the
+    object the mesh does not join to the rest (Sacre Coeur's dome above its facade, the drum a hole), not fog."""
+    obj = sphere(0.5)
+    dome = sphere(0.3, (0.0, 0.0, 1.5))  # 0.7 above the object: beyond a gap of 0.2
+    fog = sphere(0.3, (2.0, 0.0, 0.0))  # as far and as large, one sparse point on it
+    scene = merge(obj, dome, fog)
+    anchors = np.concatenate([sample_surface(obj, 400, seed=3)[0], sample_surface(dome, 100, seed=4)[0], sample_surface(fog, 1, seed=5)[0]])
+    gap_only = remove_small_components(scene, 0.01, max_gap=0.2, anchors=anchors, unsupported=(0.02, 0.05, 0.01))
+    assert gap_only.num_faces == obj.num_faces  # the gap alone: the dome goes with the fog
+    out = remove_small_components(scene, 0.01, max_gap=0.2, anchors=anchors, unsupported=(0.02, 0.05, 0.01), far_min_anchors=0.02)
+    assert out.num_faces == obj.num_faces + dome.num_faces  # 20 % of the points: kept; the fog's 0.2 %: not
+    assert out.info["floater_faces_removed"] == fog.num_faces
+
+
 def test_sheets_beside_an_object_on_its_support_go_and_the_object_stays():
     """A sheet of fog joined to the object (a skirt just above the table, a wall at the region's side): their feet on the
     support plane lie outside the footprint of the object's points; the object, its texture-less overhang within the

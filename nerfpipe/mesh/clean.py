@@ -52,6 +52,7 @@ def component_labels(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_ver
 def remove_small_components(
     mesh: TriangleMesh, min_diameter_fraction: float = 0.05, max_gap: "float | None" = None,
     anchors: "Float[np.ndarray, 'num_anchors 3'] | None" = None, unsupported: "tuple[float, float, float] | None" = None,
+    far_min_anchors: float = 0.0,
 ) -> TriangleMesh:
     """Drop floaters: connected components whose bounding-box diagonal is below ``min_diameter_fraction`` of
     the mesh's and, with ``max_gap``, those farther than ``max_gap`` from the main component.
@@ -60,7 +61,10 @@ def remove_small_components(
     object, not the largest sheet of fog), or the largest by area without anchors. With ``anchors`` and
     ``unsupported = (distance, density_share, area_share)``, pieces beside the main one that hold at least
     ``area_share`` of its area but fewer than ``density_share`` of its anchors per area (anchors within
-    ``distance`` of a vertex) go too: a sheet of fog beside the object, which no SfM point lies on.
+    ``distance`` of a vertex) go too: a sheet of fog beside the object, which no SfM point lies on. With both and
+    ``far_min_anchors`` > 0, a piece farther than ``max_gap`` stays where it holds that share of the anchors or more
+    (and is not unsupported): a part of the object that the mesh does not join to the rest (a dome above a facade
+    whose drum no photograph resolved), not a floater.
     """
     from scipy.spatial import cKDTree
 
@@ -79,6 +83,8 @@ def remove_small_components(
         gap, _ = cKDTree(mesh.vertices[label == main]).query(mesh.vertices[others], distance_upper_bound=max_gap)
         near = np.bincount(label[others], weights=np.isfinite(gap), minlength=count) > 0
         near[main] = True
+        if far_min_anchors > 0 and unsupported is not None and has_anchors:
+            near |= _anchors_held(mesh, label, count, anchors, unsupported[0]) >= far_min_anchors * len(anchors)
         keep &= near
     if unsupported is not None and has_anchors:
         keep &= ~_unsupported(mesh, label, count, main, anchors, *unsupported)
@@ -90,17 +96,22 @@ def remove_small_components(
 def _unsupported(mesh: TriangleMesh, label, count: int, main: int, anchors, distance: float, density_share: float, area_share: float) -> Bool[np.ndarray, "count"]:
     """Components other than ``main`` with ``area_share`` of its area or more and fewer than ``density_share`` of its
     anchors (within ``distance`` of one of their vertices) per unit area."""
-    from scipy.spatial import cKDTree
-
-    used = np.unique(mesh.faces)
-    gap, nearest = cKDTree(mesh.vertices[used]).query(np.asarray(anchors, dtype=np.float64), distance_upper_bound=distance)
-    held = np.bincount(label[used[nearest[np.isfinite(gap)]]], minlength=count)
+    held = _anchors_held(mesh, label, count, anchors, distance)
     v = mesh.vertices[mesh.faces]
     area = np.bincount(label[mesh.faces[:, 0]], weights=0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1), minlength=count)
     density = held / np.maximum(area, 1e-300)
     out = (area >= area_share * area[main]) & (density < density_share * density[main])
     out[main] = False
     return out
+
+
+def _anchors_held(mesh: TriangleMesh, label, count: int, anchors, distance: float) -> Int[np.ndarray, "count"]:
+    """How many ``anchors`` lie within ``distance`` of each component (of its nearest vertex's)."""
+    from scipy.spatial import cKDTree
+
+    used = np.unique(mesh.faces)
+    gap, nearest = cKDTree(mesh.vertices[used]).query(np.asarray(anchors, dtype=np.float64), distance_upper_bound=distance)
+    return np.bincount(label[used[nearest[np.isfinite(gap)]]], minlength=count)
 
 
 def _main_component(mesh: TriangleMesh, label, count: int, anchors) -> int:
