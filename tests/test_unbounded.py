@@ -595,6 +595,27 @@ def test_rays_from_downscaled_photographs_keep_their_points_and_colours(scene_pa
     assert len(sampler.tracks) > 0.8 * len(scene.points.track_camera) * len(scene.splits["train"]) / len(scene.cameras)
 
 
+def _fog_everywhere(model) -> list:
+    """``model`` in training mode, seeded, every density table at 1 (fog everywhere); its density tables."""
+    model.train()
+    model.generator = torch.Generator().manual_seed(0)
+    grids = list(model.field.density_grid.parameters())
+    with torch.no_grad():
+        for g in grids:
+            g.fill_(1.0)
+    return grids
+
+
+def _descend(loss_fn, params, steps: int = 30) -> None:
+    """``steps`` Adam steps (rate 0.1) on ``loss_fn()`` over ``params``."""
+    opt = torch.optim.Adam(params, lr=0.1)
+    for _ in range(steps):
+        loss = loss_fn()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+
 def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
     from nerfpipe.data.orbit import camera_arc, look_at
     from nerfpipe.models.fast import SPARSITY_MIN_ARC, SPARSITY_REAL
@@ -619,23 +640,13 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert no_field.sparsity_weight == 0.0  # nothing behind the box to take the surroundings (the demo's object on white)
     assert weight(arc=2 * math.pi, unbounded=False, has_alpha=True) == 0.0
     model = _model(sparsity_weight=1.0)
-    model.train()
-    model.generator = torch.Generator().manual_seed(0)
-    grids = list(model.field.density_grid.parameters())
-    with torch.no_grad():  # fog everywhere
-        for g in grids:
-            g.fill_(1.0)
+    grids = _fog_everywhere(model)
     probe = torch.rand(4096, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
     with torch.no_grad():
         fog0 = float(model.field.density(probe).mean())
     first = float(model._sparsity())
     assert first == pytest.approx(float((-torch.expm1(-model.field.density(probe) * model.step_size)).mean()), rel=0.05)
-    opt = torch.optim.Adam(grids, lr=0.1)
-    for _ in range(30):
-        loss = model._sparsity()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    _descend(model._sparsity, grids)
     with torch.no_grad():
         assert float(model.field.density(probe).mean()) < 0.5 * fog0
         assert float(model._sparsity()) < 0.5 * first
@@ -667,23 +678,13 @@ def test_evidence_sparsity_clears_the_box_away_from_the_sparse_points_where_the_
     assert evidence_at(grid, box, probe).tolist() == [True, True, False, False, False, False]
 
     model = FastConfig(preset="small").setup(SceneInfo(**info, arc=1.0))
-    model.train()
-    model.generator = torch.Generator().manual_seed(0)
-    grids = list(model.field.density_grid.parameters())
-    with torch.no_grad():  # fog everywhere
-        for g in grids:
-            g.fill_(1.0)
+    grids = _fog_everywhere(model)
     near = points[::6] + 0.02
     far = torch.rand(2048, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
     far = far[~evidence_at(model.evidence, box, far)]
     with torch.no_grad():
         near0, far0 = float(model.field.density(near).mean()), float(model.field.density(far).mean())
-    opt = torch.optim.Adam(grids, lr=0.1)
-    for _ in range(30):
-        loss = model._sparsity(away_from_points=True)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    _descend(lambda: model._sparsity(away_from_points=True), grids)
     with torch.no_grad():
         assert float(model.field.density(far).mean()) < 0.5 * far0
         assert float(model.field.density(near).mean()) > 0.8 * near0
