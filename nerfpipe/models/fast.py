@@ -530,7 +530,10 @@ class FastConfig:
     the sky's fog). Default: :data:`EVIDENCE_SPARSITY` for real captures with sparse points where ``sparsity_weight``
     is 0 (facades, walls, photo collections: the cameras on one side), 0 otherwise."""
     evidence_radius: float = 0.05
-    """Distance from the nearest sparse point, in object-region diagonals, beyond which the evidence sparsity applies."""
+    """Distance from the nearest sparse point, in object-region diagonals, beyond which the evidence sparsity applies.
+    photos_sacre_coeur side by side (session 47, the weight 0.3, 2 views, appearance fitted) after 400 / 700 steps: 0.03
+    14.63 / 14.89 dB, **0.05 15.56 / 15.80**, 0.08 14.22 / 15.40 (colour fitted after 700 15.12 / 15.22 / 15.10; 22.5 /
+    26.9 / 34.1 samples per ray)."""
     entropy_weight: float = 0.0
     """Weight of the binary entropy of each training ray's opacity in the box (``-a log a - (1-a) log(1-a)``),
     from step ``behind_from`` on when there is a field behind the box: a ray either stops at a surface in the box
