@@ -255,7 +255,7 @@ def evidence_grid(points: Float[Tensor, "num_points 3"], aabb: Float[Tensor, "2 
     diagonals of a sparse point (a box dilation of the cells that hold one; bool ``[X, Y, Z]``)."""
     aabb = aabb.float().cpu()
     extent = aabb[1] - aabb[0]
-    cell = float(extent.max()) / EVIDENCE_CELLS
+    cell = max(float(extent.max()), 1e-9) / EVIDENCE_CELLS
     shape = [max(1, int(math.ceil(float(e) / cell))) for e in extent]
     idx = ((points.float().cpu() - aabb[0]) / cell).long()
     for axis, n in enumerate(shape):
@@ -270,7 +270,7 @@ def evidence_grid(points: Float[Tensor, "num_points 3"], aabb: Float[Tensor, "2 
 def evidence_at(grid: "Tensor", aabb: Float[Tensor, "2 3"], x: Float[Tensor, "num_points 3"]) -> "Tensor":
     """Whether each point's cell of ``grid`` (:func:`evidence_grid` over ``aabb``) lies near a sparse point (points
     outside ``aabb`` take the nearest cell)."""
-    cell = (aabb[1] - aabb[0]).max() / EVIDENCE_CELLS
+    cell = (aabb[1] - aabb[0]).max().clamp(min=1e-9) / EVIDENCE_CELLS
     idx = ((x - aabb[0]) / cell).long().clamp(min=0)
     flat = grid.reshape(-1)
     nx, ny, nz = grid.shape
