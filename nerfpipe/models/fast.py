@@ -655,13 +655,12 @@ class FastModel(Model):
         rounds), before any were dropped from :attr:`sample_capacity`'s slots."""
         sparse = around  # the field behind the box takes what the box may not keep
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
-        has_points = info.points is not None and len(info.points) >= EVIDENCE_MIN_POINTS
-        evidence = EVIDENCE_SPARSITY if (use_behind and has_points and self.sparsity_weight == 0) else 0.0
+        points = info.points if info.points is not None and len(info.points) >= EVIDENCE_MIN_POINTS else None
+        evidence = EVIDENCE_SPARSITY if (use_behind and points is not None and self.sparsity_weight == 0) else 0.0
         self.evidence_sparsity_weight = evidence if cfg.evidence_sparsity_weight is None else cfg.evidence_sparsity_weight
-        if self.evidence_sparsity_weight > 0 and info.points is not None:
-            self.register_buffer("evidence", evidence_grid(info.points, aabb, cfg.evidence_radius), persistent=False)
-        else:
-            self.evidence = None
+        use_evidence = self.evidence_sparsity_weight > 0 and info.points is not None
+        self.register_buffer("evidence", evidence_grid(info.points, aabb, cfg.evidence_radius) if use_evidence else None, persistent=False)
+        """Cells near a sparse point (:func:`evidence_grid`), where the evidence sparsity is on; None elsewhere."""
 
     @staticmethod
     def _diagonal(aabb: Float[Tensor, "2 3"]) -> float:

@@ -293,9 +293,13 @@ def _box_points(scene: SceneData) -> "Float[Tensor, 'num_points 3'] | None":
     """A real capture's sparse points in its scene box (float32, on the CPU), or None."""
     if not scene.shows_surroundings or scene.points is None or not len(scene.points.xyz):
         return None
-    xyz = scene.points.xyz.float().cpu()
-    lo, hi = scene.aabb[0].float().cpu(), scene.aabb[1].float().cpu()
-    return xyz[((xyz >= lo) & (xyz <= hi)).all(-1)]
+    return scene.points.xyz.float().cpu()[_in_region(scene)]
+
+
+def _in_region(scene: SceneData) -> "Tensor":
+    """Which of the scene's sparse points lie in its scene box, the object region (bool, on the CPU)."""
+    xyz, (lo, hi) = scene.points.xyz.double().cpu(), scene.aabb.double().cpu()
+    return ((xyz >= lo) & (xyz <= hi)).all(-1)
 
 
 SUPPORT_TOLERANCE = 0.02
@@ -347,11 +351,7 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
 def _support_points(scene: SceneData) -> "np.ndarray":
     """The sparse points the support plane is looked for in (float64): those in the object region, the plane under the
     object rather than a floor farther down, or all of them where the region holds fewer than :data:`SUPPORT_MIN_POINTS`."""
-    import numpy as np
-
-    points = scene.points.xyz.double().cpu().numpy()
-    lo, hi = scene.aabb.double().cpu().numpy()
-    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    points, inside = scene.points.xyz.double().cpu().numpy(), _in_region(scene).numpy()
     return points[inside] if inside.sum() >= SUPPORT_MIN_POINTS else points
 
 
