@@ -459,10 +459,81 @@ def test_the_colour_behind_the_box_is_computed_only_for_rays_that_show_it():
     codes = model._image_codes(rays)  # this model has image codes (a photo collection): the mean one in evaluation
     with torch.no_grad():
         got = model._behind(rays, code, t_exit, bg, acc, {}, codes)
-        full = model.behind(rays.origins, rays.directions, code, t_exit, bg, codes=codes).rgb
+        full = model._in_front(rays, code, model.behind(rays.origins, rays.directions, code, t_exit, bg, codes=codes).rgb, codes)
     torch.testing.assert_close(got[:2], bg[:2])
     torch.testing.assert_close(got[2:], full[2:])
     assert float((full[2:] - bg[2:]).abs().max()) > 0.01  # the field behind the box does show there
+
+
+def test_the_field_in_front_of_the_box_reads_the_intervals_of_a_ray_that_misses_the_box():
+    """``BackgroundField.front`` cut nowhere is the field's own rendering from the same start (values and gradients);
+    cut at or before its start it is empty; cut in between, its transmittance is the product over the cut intervals
+    (a slow loop: each interval's midpoint, its contracted length)."""
+    torch.manual_seed(3)
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    field = BackgroundField(BackgroundFieldConfig(), box).double()
+    with torch.no_grad():
+        for t in [*field.density_grid.tables, *field.feature_grid.tables]:
+            t.normal_()
+    field.eval()
+    rays = _rays(16, 4)
+    o, d = rays.origins.double(), rays.directions.double()
+    code, start = direction_encoding(d), torch.full((16,), 0.5, dtype=torch.float64)
+    out = field(o, d, code, start, torch.zeros(16, 3, dtype=torch.float64))
+    rgb, trans = field.front(o, d, code, start, torch.full_like(start, float("inf")))
+    torch.testing.assert_close(rgb, out.rgb)
+    torch.testing.assert_close(trans, 1.0 - out.acc)
+    params = list(field.parameters())
+    g_front = torch.autograd.grad((rgb * torch.arange(1.0, 4.0)).sum() + trans.sum(), params)
+    g_field = torch.autograd.grad((out.rgb * torch.arange(1.0, 4.0)).sum() - out.acc.sum(), params)
+    for a, b in zip(g_front, g_field):
+        torch.testing.assert_close(a, b)
+    with torch.no_grad():
+        rgb, trans = field.front(o, d, code, start, start * 0.5)
+        assert float(rgb.abs().max()) == 0.0 and float((trans - 1.0).abs().max()) == 0.0
+        t_end = torch.linspace(0.8, 6.0, 16, dtype=torch.float64)
+        _, trans = field.front(o, d, code, start, t_end)
+        edges = field.t_far / (1.0 + (field.t_far / 0.5 - 1.0) * (1.0 - torch.linspace(0.0, 1.0, field.cfg.num_samples + 1, dtype=torch.float64)))
+        for i in range(16):
+            optical = 0.0
+            for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
+                b = min(b, float(t_end[i]))
+                if b <= a:
+                    break
+                ends = contract(to_box_coordinates(o[i] + torch.tensor([[a], [b]], dtype=torch.float64) * d[i], box.double()))
+                optical += float(field.density(o[i : i + 1] + 0.5 * (a + b) * d[i])) * float((ends[1] - ends[0]).norm())
+            assert abs(float(trans[i]) - math.exp(-optical)) < 1e-9
+
+
+def test_rays_either_side_of_the_box_outline_see_the_same_surroundings():
+    """Two rays a hair apart, one that just misses the (empty) box and one that just crosses it, see the same
+    haze of the field behind the box: the one that crosses reads the field in front of the box too
+    (``BackgroundFieldConfig.front``); without it the haze between the camera and the box is missing from it and
+    the box's outline shows."""
+    model = _model(behind_from=0, behind=BackgroundFieldConfig(num_samples=96))
+    model.eval()
+    with torch.no_grad():  # a uniform haze of one colour: two partitions of a ray differ only by their chords' error
+        model.behind.density_grid.tables[0].fill_(2.0)
+        model.behind.feature_grid.tables[0].zero_()
+        model.behind.mlp[-1].weight.zero_()
+        model.behind.mlp[-1].bias.fill_(2.0)
+    o = torch.tensor([[0.0, 0.0, 4.0]]).expand(2, 3)
+    d = torch.nn.functional.normalize(torch.tensor([[1.0 - 1e-4, 0.0, -3.0], [1.0 + 1e-4, 0.0, -3.0]]), dim=-1)
+    rays = RayBundle(origins=o, directions=d, cam_idx=torch.zeros(2, dtype=torch.long), z_scale=torch.ones(2))
+    code = direction_encoding(d)
+
+    def render():
+        with torch.no_grad():
+            return model._over_surroundings(rays, torch.zeros(2, 3), torch.zeros(2), torch.zeros(2, 3), code, model._behind_start(rays), {})
+
+    from nerfpipe.estimators.occupancy import ray_aabb_intersect
+
+    t_in, t_out = ray_aabb_intersect(o, d, model.object_box)
+    assert bool(t_out[0] >= t_in[0]) and not bool(t_out[1] >= t_in[1])  # one crosses the box, one misses it
+    seamless = render()
+    assert float((seamless[0] - seamless[1]).abs().max()) < 0.005  # 0.0018: the chords of two partitions
+    model.behind.cfg.front = False
+    assert float((render()[0] - render()[1]).abs().max()) > 0.04  # 0.054
 
 
 def test_the_appearance_fit_composites_as_get_outputs_does():

@@ -75,6 +75,11 @@ class BackgroundFieldConfig:
     """Rows of each hashed fine level, as a power of two."""
     proposal_weight: float = 1.0
     """Weight of the loss that makes the coarse weights bound the fine ones (fine field only)."""
+    front: bool = True
+    """Rays that cross the box also read the field in front of it (:meth:`BackgroundField.front`): at the
+    intervals of a ray that misses the box, cut where the ray enters it, composited with what lies behind the box
+    (``FastModel._in_front``). Without it the field's haze between the cameras and the table was seen only around
+    the box, whose outline showed on the table in every orbit."""
     init_density: float = 0.01
     """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
     to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and
@@ -186,6 +191,49 @@ class BackgroundField(nn.Module):
         grid = self.fine_density_grid if self.fine else self.density_grid
         return self._sigma(grid, self._corners(points, grid))
 
+    def _colours(self, corners: list, dir_code: Float[Tensor, "num_rays 16"], codes, s: int) -> Float[Tensor, "num_points 3"]:
+        """Colour at ``s`` samples per ray given by their ``corners`` (:meth:`_corners`)."""
+        feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
+        if self.cfg.view_dependent:
+            feats.append(dir_code.repeat_interleave(s, dim=0))
+        if self.code_dim:
+            feats.append(codes.repeat_interleave(s, dim=0))
+        return torch.sigmoid(self.mlp(torch.cat(feats, dim=-1)))
+
+    def front(
+        self,
+        origins: Float[Tensor, "num_rays 3"],
+        directions: Float[Tensor, "num_rays 3"],
+        dir_code: Float[Tensor, "num_rays 16"],
+        t_start: Float[Tensor, "num_rays"],
+        t_end: Float[Tensor, "num_rays"],
+        generator: "torch.Generator | None" = None,
+        codes: "Float[Tensor, 'num_rays code_dim'] | None" = None,
+    ) -> "tuple[Float[Tensor, 'num_rays 3'], Float[Tensor, 'num_rays']]":
+        """The field between ``t_start`` and ``t_end`` (where a ray enters the box): its colour (premultiplied by
+        its opacity) and the transmittance it leaves.
+
+        The intervals are those :meth:`forward` gives a ray from ``t_start`` (uniform in disparity to far away),
+        each cut at ``t_end`` (those beyond it empty, weighing nothing), so a ray that crosses the box sees the
+        space in front of it as its neighbour that misses the box does: the same samples, no seam at the box's
+        outline. The coarse density renders (the fine field, when there is one, is sampled behind the box only).
+        """
+        n, s = origins.shape[0], self.cfg.num_samples
+        edges = disparity_to_distance(t_start, self.t_far, torch.linspace(0.0, 1.0, s + 1, device=origins.device, dtype=t_start.dtype))
+        edges = torch.minimum(edges, torch.maximum(t_end, t_start)[:, None])
+        deltas = edges[:, 1:] - edges[:, :-1]
+        u = torch.rand((n, s), device=origins.device, generator=generator) if self.training else torch.full_like(deltas, 0.5)
+        t = edges[:, :-1] + u * deltas
+        lengths = self._contracted_lengths(origins, directions, t_start, deltas)
+        points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
+        corners = self._corners(points)
+        sigma = self._sigma(self.density_grid, corners).view(n, s)
+        if self.fine:
+            corners = self._corners(points, self.fine_density_grid)
+        weights, _ = render_weights(sigma, lengths)
+        rgb = (weights[..., None] * self._colours(corners, dir_code, codes, s).view(n, s, 3)).sum(-2)
+        return rgb, 1.0 - weights.sum(-1)
+
     def forward(
         self,
         origins: Float[Tensor, "num_rays 3"],
@@ -223,13 +271,7 @@ class BackgroundField(nn.Module):
             points = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
             corners = self._corners(points, self.fine_density_grid)
             sigma = self._sigma(self.fine_density_grid, corners).view(n, s)
-        feats = [grid_gather(tb, i, w) for tb, (i, w) in zip(self.feature_grid.tables, corners)]
-        if self.cfg.view_dependent:
-            feats.append(dir_code.repeat_interleave(s, dim=0))
-        if self.code_dim:
-            feats.append(codes.repeat_interleave(s, dim=0))
-        h = torch.cat(feats, dim=-1)
-        rgbs = torch.sigmoid(self.mlp(h)).view(n, s, 3)
+        rgbs = self._colours(corners, dir_code, codes, s).view(n, s, 3)
         weights, _ = render_weights(sigma, deltas)
         if self.fine and self.training:
             proposal = outer_weight_loss(edges, weights, coarse)
