@@ -793,3 +793,22 @@ def test_a_real_capture_training_step_with_sample_slots_reads_nothing_back():
     assert grads.keys() == ref_grads.keys()
     for name in grads:
         torch.testing.assert_close(grads[name], ref_grads[name], rtol=1e-5, atol=1e-9)
+
+
+def test_a_run_written_before_the_field_in_front_of_the_box_loads_as_it_trained():
+    """A stored model config without ``behind.front`` (a run written before session 48) loads with it off, as it
+    trained; one that has it keeps its value; the config's own default is on."""
+    from nerfpipe.training.runs import _options_since
+    from nerfpipe.util.configs import from_dict, to_dict
+
+    assert FastConfig().behind.front
+    stored = to_dict(FastConfig())
+    del stored["behind"]["front"]
+    _options_since(FastConfig, stored)
+    assert not from_dict(FastConfig, stored).behind.front
+    stored = to_dict(FastConfig())
+    _options_since(FastConfig, stored)
+    assert from_dict(FastConfig, stored).behind.front
+    stored = {"preset": "small"}  # no table of the field behind the box at all
+    _options_since(FastConfig, stored)
+    assert not from_dict(FastConfig, stored).behind.front

@@ -18,6 +18,7 @@ Glossary:
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 from collections.abc import Callable, Iterator
 
 import torch
@@ -297,6 +298,10 @@ def object_support(info: SceneInfo) -> "tuple[float, float, float, float] | None
 @dataclass
 class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
+
+    OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False}
+    """Options added since runs were first written (dotted names), with the value such a run was trained as: a run's
+    ``config.json`` that lacks one renders, meshes and scores as it trained (:func:`nerfpipe.training.runs.load_run`)."""
 
     preset: str = "auto"
     """Capacity: ``auto`` (from image count and resolution: ``small``, ``medium``, or ``compact`` where a dense

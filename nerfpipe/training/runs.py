@@ -79,6 +79,22 @@ def find_run(path: Path) -> "Path | None":
     return folder if (folder / CONFIG).is_file() else None
 
 
+def _options_since(config: type, values: dict) -> None:
+    """Give ``values`` (a run's stored model config) the value it was trained as for each option added since
+    (``config.OPTIONS_SINCE``, dotted names) that it lacks."""
+    if not isinstance(values, dict):
+        return  # refused, naming the file, by from_dict
+    for dotted, old in getattr(config, "OPTIONS_SINCE", {}).items():
+        *tables, key = dotted.split(".")
+        table = values
+        for name in tables:
+            table = table.setdefault(name, {})
+            if not isinstance(table, dict):
+                break
+        else:
+            table.setdefault(key, old)
+
+
 def load_run(run_dir: Path, device: str = "auto"):
     """``(scene, model, config)`` of a finished or checkpointed run, model in eval mode, on ``device``
     (``auto``: CUDA when present, else the CPU; :func:`~nerfpipe.util.devices.check_device`).
@@ -103,6 +119,7 @@ def load_run(run_dir: Path, device: str = "auto"):
     config_file = Path(run_dir) / CONFIG
     try:
         spec = get_model(cfg["model"])
+        _options_since(spec.config, cfg["model_config"])
         retired: "list[str]" = []
         model_cfg = from_dict(spec.config, cfg["model_config"], dropped=retired)
     except (TypeError, ValueError) as exc:
