@@ -190,7 +190,7 @@ def test_the_texture_lies_at_its_distance_behind_what_the_field_behind_the_box_h
     from nerfpipe.estimators.occupancy import ray_aabb_intersect
 
     model = FastConfig(preset="small").setup(_info()).eval()
-    model.behind.cfg.front = False  # its part in front of the box, opaque here too, would hide all (test_unbounded's)
+    model.front = False  # the field's part in front of the box, opaque here too, would hide all (test_unbounded's)
     n = 256
     origins = torch.tensor([[0.0, -4.0, 1.5]]).expand(n, 3)
     down = torch.linspace(0.2, 1.5, n)  # grazing rays meet the floor far away, steep ones under the box

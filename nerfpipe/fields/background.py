@@ -75,11 +75,12 @@ class BackgroundFieldConfig:
     """Rows of each hashed fine level, as a power of two."""
     proposal_weight: float = 1.0
     """Weight of the loss that makes the coarse weights bound the fine ones (fine field only)."""
-    front: bool = True
+    front: "bool | None" = None
     """Rays that cross the box also read the field in front of it (:meth:`BackgroundField.front`): at the
     intervals of a ray that misses the box, cut where the ray enters it, composited with what lies behind the box
     (``FastModel._in_front``). Without it the field's haze between the cameras and the table was seen only around
-    the box, whose outline showed on the table in every orbit."""
+    the box, whose outline showed on the table in every orbit. Default: from
+    ``nerfpipe.models.fast.FRONT_MIN_IMAGES`` training images on (with fewer it costs held-out PSNR)."""
     init_density: float = 0.01
     """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
     to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and

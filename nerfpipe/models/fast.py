@@ -204,6 +204,17 @@ APPEARANCE_FIT_LR = 0.05
 
 APPEARANCE_FIT_FINAL_LR = 0.1
 
+FRONT_MIN_IMAGES = 32
+"""Training images from which rays that cross the box also read the field behind the box in front of it
+(``BackgroundFieldConfig.front`` None: :meth:`FastModel._in_front`). With fewer, the haze a camera's neighbours leave
+there is a poor guess for the rays that cross the box, and the held-out views lose: side by side (the average scored,
+one ray per pixel) a 23-photo posed cut of colmap_mouse (20 training images, 3 views) 24.58 → 24.49 dB after 600 steps,
+10 of those photos kept from a folded reconstruction (8, 2 views) 19.39 → 18.86 after 1,000, photos_sacre_coeur (8,
+2 views) mean code 12.59 → 12.52 and appearance fitted 15.72 → 15.43 after 700; photos_sceaux_castle (9) 14.85 →
+14.90. With more, it neither gains nor costs and the box's outline leaves the renders: colmap_mouse (49) 24.78 → 24.79
+after 900, the room scene (49) 30.45 → 30.44 after 600, ngp_fox (58) 27.95 → 27.96 after 600. Read but not trained
+by the rays that cross the box (its gradients stopped there): colmap_mouse 24.83, the room 30.30, ngp_fox 27.96,
+the 23-photo cut 24.47, the folded 10 19.10: not kept."""
 BEHIND_SEEN = 1e-3
 """Transmittance of the box below which a ray's colour behind the box is not computed (it changes the
 pixel by less than a thousandth of the colour range)."""
@@ -647,6 +658,9 @@ class FastModel(Model):
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head(code_dim) if learn_bg else None
         self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
+        front = info.num_images >= FRONT_MIN_IMAGES if cfg.behind.front is None else cfg.behind.front
+        self.front = use_behind and front
+        """Rays that cross the box read the field behind it in front of the box too (:meth:`_in_front`)."""
         around = use_behind and info.arc >= SPARSITY_MIN_ARC  # an object photographed from around it, its surroundings modelled
         use_plane = info.support_plane is not None and (around if cfg.support_texture is None else cfg.support_texture)
         self.plane = PlaneTexture(cfg.plane, torch.tensor(info.support_plane), aabb.mean(0), 0.5 * self._diagonal(aabb), code_dim) if use_plane else None
@@ -838,10 +852,10 @@ class FastModel(Model):
         does (without it the box's outline showed on the table in every orbit: the field's haze between the cameras
         and the table lay only around the box), and the field never veils what the box holds. colmap_mouse side by
         side (7 views at 400 px, one ray per pixel) after 600 / 900 steps: 24.62 / 24.72 dB, averaged 24.78, without;
-        24.72 / 24.75, averaged **24.79**, with (colour fitted 23.99 → 24.17) at 1.08x the time a step; composited
-        in front of the box's content (physically in order) 24.54 / 24.60, averaged 24.67: the haze then veils the
-        mouse."""
-        if not self.behind.cfg.front:
+        24.72 / 24.73, averaged **24.79**, with (colour fitted 23.99 → 24.15); composited in front of the box's content
+        (physically in order) 24.54 / 24.60, averaged 24.67: the haze then veils the mouse. On where the capture has
+        :data:`FRONT_MIN_IMAGES` training images (``self.front``; the other scenes' figures there)."""
+        if not self.front:
             return rgb
         near = torch.full_like(rays.origins[:, 0], self.info.near)
         t_in, t_out = ray_aabb_intersect(rays.origins, rays.directions, self.object_box)
@@ -1183,6 +1197,7 @@ class FastModel(Model):
             sparsity_weight=float(self.sparsity_weight),
             evidence_sparsity_weight=float(self.evidence_sparsity_weight),
             support_texture=float(self.plane is not None),
+            behind_front=float(self.front),
             lr_batch_scale=self.lr_batch_scale,
         )
         return out
