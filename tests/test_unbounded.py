@@ -329,14 +329,16 @@ def test_depth_loss_and_the_field_behind_the_box_read_nothing_back_from_the_devi
     assert c.syncs == 0, dict(c.sync_ops)
 
 
-def test_a_real_capture_training_step_in_fixed_shapes_reads_back_twice_on_the_cpu():
+@pytest.mark.parametrize("front", [False, True])
+def test_a_real_capture_training_step_in_fixed_shapes_reads_back_twice_on_the_cpu(front):
     """Issue 13: with the marching in shapes known on the host (CUDA's default), a whole training step of a real
     capture (box, field behind the box, depth loss, colour corrections, image codes), forward and backward, reads
     back the number of samples kept and, on the CPU, of the occupied intervals. The field behind the box then renders
-    every ray."""
+    every ray, and so does its part in front of the box where it is read (``behind.front``)."""
     from nerfpipe.training.opcount import DispatchCounter
 
-    model = _model(fixed_shapes=True)
+    model = _model(fixed_shapes=True, behind=BackgroundFieldConfig(front=front))
+    assert model.front == front
     model.train()
     model._step = model.cfg.behind_from  # the field behind the box is on
     rays, bg = _rays(64, 3), torch.zeros(64, 3)
