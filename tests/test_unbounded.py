@@ -799,7 +799,7 @@ def test_a_real_capture_training_step_with_sample_slots_reads_nothing_back():
 
 def test_a_run_written_before_the_field_in_front_of_the_box_loads_as_it_trained():
     """A stored model config without ``behind.front`` (a run written before session 48) loads with it off, as it
-    trained; one that has it keeps its value; the config's own default is on."""
+    trained; one that has it keeps its value; the config's own default is None (decided by the training images)."""
     from nerfpipe.training.runs import _options_since
     from nerfpipe.util.configs import from_dict, to_dict
 

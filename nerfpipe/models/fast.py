@@ -209,7 +209,7 @@ FRONT_MIN_IMAGES = 32
 (``BackgroundFieldConfig.front`` None: :meth:`FastModel._in_front`). With fewer, the haze a camera's neighbours leave
 there is a poor guess for the rays that cross the box, and the held-out views lose: side by side (the average scored,
 one ray per pixel) a 23-photo posed cut of colmap_mouse (20 training images, 3 views) 24.58 → 24.49 dB after 600 steps,
-10 of those photos kept from a folded reconstruction (8, 2 views) 19.39 → 18.86 after 1,000, photos_sacre_coeur (8,
+10 photos kept from a folded reconstruction of another 23-photo folder (8, 2 views) 19.39 → 18.86 after 1,000, photos_sacre_coeur (8,
 2 views) mean code 12.59 → 12.52 and appearance fitted 15.72 → 15.43 after 700; photos_sceaux_castle (9) 14.85 →
 14.90. With more, it neither gains nor costs and the box's outline leaves the renders: colmap_mouse (49) 24.78 → 24.79
 after 900, the room scene (49) 30.45 → 30.44 after 600, ngp_fox (58) 27.95 → 27.96 after 600. Read but not trained
