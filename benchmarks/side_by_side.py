@@ -56,6 +56,10 @@ class SideBySideConfig:
     pictures: "Path | None" = None
     """After the last mark, write this PNG: one row per variant of four orbit views (around the scene box at the
     training cameras' distance and elevation), longer side ``eval_max_size``, to see fog that PSNR hides."""
+    average_every_mark: bool = False
+    """Also score the parameter average at every mark, not only after the last (on a copy of the model, its occupancy
+    grid refreshed from the average as a run's end does: training goes on undisturbed), to see where more steps stop
+    paying for a run that ends there."""
 
 
 def parse_variant(text: str) -> "tuple[str, str, tuple[str, ...], dict]":
@@ -112,6 +116,10 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
                                  appearance_fitted=None if fitted is None else round(fitted, 3), model_mb=round(stats["model_mb"], 2), finest_voxel=round(stats.get("finest_voxel", 0.0), 5),
                                  samples_per_ray=round(stats["samples_per_ray"], 2),
                                  occupied=round(stats.get("occupied_fraction", 0.0), 4), load=round(os.getloadavg()[0], 2)))
+                if cfg.average_every_mark and mark != cfg.marks[-1] and trainer.average is not None:
+                    averaged = averaged_psnr(trainer, cfg.eval_views)
+                    if averaged is not None:
+                        rows[-1]["psnr_averaged"] = round(averaged, 3)
                 if mark == cfg.marks[-1] and trainer.average is not None and trainer.average.apply():
                     trainer.model.parameters_replaced()  # as the run ends: scored with the averaged parameters
                     rows[-1]["psnr_averaged"] = round(evaluation.validate(trainer, cfg.eval_views, final=True)[0], 3)
@@ -120,6 +128,31 @@ def main(cfg: SideBySideConfig) -> "list[dict]":
             write_orbit_strips(cfg.pictures, scene, [r["trainer"] for r in runs], cfg.eval_max_size)
     append_log(cfg.log, rows)
     return rows
+
+
+def averaged_psnr(trainer, views: int) -> "float | None":
+    """Validation PSNR of the parameter average so far, scored on a copy of the model (the run goes on unchanged);
+    None before the average starts."""
+    import copy
+
+    from nerfpipe.training import evaluation
+
+    average = trainer.average
+    if average.values is None:
+        return None
+    model = trainer.model
+    twin = copy.deepcopy(model)
+    with torch.no_grad():
+        params = dict(twin.named_parameters())
+        for name, value in average.values.items():
+            params[name].copy_(value)
+    twin.parameters_replaced()
+    trainer.model = twin
+    try:
+        return evaluation.validate(trainer, views, final=True)[0]
+    finally:
+        trainer.model = model
+        model.train()
 
 
 def write_orbit_strips(path: Path, scene, trainers: list, max_size: "int | None", views: int = 4) -> None:

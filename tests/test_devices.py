@@ -17,6 +17,16 @@ def test_auto_is_the_cpu_on_a_machine_without_cuda(monkeypatch):
     assert devices.describe("cpu").startswith("device: cpu (")
 
 
+def test_the_cpu_line_says_how_openmp_waits_where_the_program_chose_it(monkeypatch):
+    """The step's time differs 1.8x between spinning and sleeping waits: a run's log says which it got."""
+    from nerfpipe.util import runtime
+
+    monkeypatch.setattr(runtime, "OMP_WAIT", "passive")
+    assert devices.describe("cpu").endswith("threads, OpenMP waits: passive)")
+    monkeypatch.setattr(runtime, "OMP_WAIT", "unset")  # a library import: nothing chosen, nothing said
+    assert "OpenMP" not in devices.describe("cpu")
+
+
 def test_auto_is_cuda_when_torch_sees_a_gpu(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)

