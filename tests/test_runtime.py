@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from nerfpipe.util.runtime import busy_cpus, choose_omp_wait_policy, keep_freed_memory
+from nerfpipe.util.runtime import busy_cpus, choose_omp_wait_policy, keep_freed_memory, sustained_busy_cpus
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
@@ -48,6 +48,23 @@ def test_busy_cpus_sees_a_busy_process():
         assert busy_cpus(0.3) > 0.7
     finally:
         hog.kill()
+
+
+def test_a_busy_process_keeps_the_cpus_busy_in_every_reading_a_burst_in_one():
+    """The decision reads the least of several windows: a hog is seen in all of them, a burst (a process exiting
+    just as a run starts) in one only, and a burst must not cost an idle machine's run its spinning waits."""
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        import time
+
+        time.sleep(0.3)
+        assert sustained_busy_cpus() > 0.7
+    finally:
+        hog.kill()
+    readings = iter([2.0, 1.9, 0.2, 2.0])
+    assert sustained_busy_cpus(measure=lambda: next(readings)) == 0.2
+    env: dict = {}
+    assert choose_omp_wait_policy(env, busy=sustained_busy_cpus(measure=iter([2.0, 0.1, 2.0, 2.0]).__next__), cpus=2) == "spin"
 
 
 def _without_openmp_settings() -> dict:

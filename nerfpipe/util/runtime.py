@@ -22,8 +22,9 @@ GOMP default (spin)         15.4 s                      14.2 s for 20 steps
 
 (and with several multi-threaded torch processes spinning against each other, a training step took
 4.7 s instead of 0.21 s). So the CLI keeps GOMP's default when the machine is idle at start and asks
-for ``PASSIVE`` when other processes keep half of the CPUs or more busy (measured over 50 ms of
-``/proc/stat``; the 1-minute load average lags by a minute after a heavy process ends). An explicit
+for ``PASSIVE`` when other processes keep half of the CPUs or more busy (:func:`sustained_busy_cpus`: the least of
+four readings of 50 ms of ``/proc/stat``, so that a burst, such as a previous process's exit, does not count; the
+1-minute load average lags by a minute after a heavy process ends). An explicit
 ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` wins. The setting is read once, when torch loads OpenMP:
 :func:`apply` after torch is loaded leaves the environment alone (it would only reach child processes).
 
@@ -83,14 +84,14 @@ def choose_omp_wait_policy(environ: "dict | None" = None, busy: "float | None" =
 
     Args:
         environ: the environment to read and change (default: ``os.environ``).
-        busy: CPUs in use by others (default: measured by :func:`busy_cpus`).
+        busy: CPUs in use by others (default: measured by :func:`sustained_busy_cpus`).
         cpus: CPUs of the machine (default: ``os.cpu_count()``).
     """
     env = os.environ if environ is None else environ
     if "OMP_WAIT_POLICY" in env or "GOMP_SPINCOUNT" in env:
         return "user"
     cpus = cpus or os.cpu_count() or 1
-    busy = busy_cpus() if busy is None else busy
+    busy = sustained_busy_cpus() if busy is None else busy
     if busy >= cpus / 2:
         env["OMP_WAIT_POLICY"] = "PASSIVE"
         return "passive"
@@ -108,6 +109,21 @@ def cpu_ticks() -> "tuple[int, int] | None":
         return None
     idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
     return sum(fields), idle
+
+
+def sustained_busy_cpus(windows: int = 4, measure=None) -> float:
+    """CPUs in use through ``windows`` consecutive readings of :func:`busy_cpus` (``measure``: another reading, for
+    tests): the least of them. Passive waits cost a run on an idle machine 1.8x its step time, and one 50 ms reading
+    counts a short burst (a process exiting, a shell command) as load; other processes that keep the CPUs busy do so
+    in every reading.
+
+    Example:
+        >>> readings = iter([1.9, 0.1, 2.0, 1.8])
+        >>> sustained_busy_cpus(measure=lambda: next(readings))
+        0.1
+    """
+    measure = busy_cpus if measure is None else measure
+    return min(measure() for _ in range(max(1, windows)))
 
 
 def busy_cpus(seconds: float = 0.05) -> float:
