@@ -1,6 +1,7 @@
 """The fast grid field: trilinear gathers against a loop reference (values, float64 gradcheck),
 resampling on box tightening, checkpoint round trip, and a tiny training run that learns."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -181,9 +182,40 @@ def test_compact_capacity_resolves_a_pixel_and_bounds_memory():
     assert "spacing" not in big  # a real capture: the held-out views gain nothing finer
     bounded = compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))
     assert bounded["levels"] == (32, 64, 128, 256, MAX_FINEST_BOUNDED) and bounded["spacing"] == MAX_FINEST
+    assert bounded["log2_hashmap_size"] == 19 and bounded["log2_fine_hashmap_size"] == 20  # pixels / 32 = 2^22.9
+    assert big["log2_fine_hashmap_size"] is None  # a real capture's tables stay at 2^19
+    fewer = compact_capacity(info(num_images=20, pixels_per_image=800 * 800, pixel_footprint=2.0 / 5000))  # 2^18.6 rows asked
+    assert fewer["levels"][-1] == MAX_FINEST_BOUNDED and fewer["log2_fine_hashmap_size"] is None
     assert "spacing" not in compact_capacity(info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 300))
     unknown = compact_capacity(info(num_images=10, pixels_per_image=300 * 300))  # no cameras: the image's side
     assert unknown["levels"][-1] == min(300, MAX_FINEST) and unknown["log2_hashmap_size"] == 17
+
+
+def test_the_finest_hashed_levels_get_their_own_rows_and_old_runs_keep_theirs():
+    """Hashed levels of more than ``fine_min_vertices`` vertices take ``fine_rows`` rows (the 800² stand-in's 256- and
+    512-levels, where its occupied cells hold more vertices than 2^19 rows), the others ``max_rows``; a run written
+    before the option loads with the rows it trained with."""
+    from nerfpipe.models.fast import FINE_HASH_VERTICES, LOG2_FINE_ROWS_BOUNDED
+
+    enc = DenseGridEncoding([(4, 5, 6), (8, 8, 9), (16, 12, 16), (33, 20, 31)], channels=2, max_rows=1024, fine_rows=4096,
+                            fine_min_vertices=16 * 12 * 16)
+    assert enc.hash_rows == [None, None, 1024, 4096] and [t.shape[0] for t in enc.tables] == [120, 576, 1024, 4096]
+    with pytest.raises(ValueError, match="power of two"):
+        DenseGridEncoding([(4, 4, 4)], channels=1, max_rows=64, fine_rows=100)
+    lego800 = info(num_images=88, pixels_per_image=800 * 800, pixel_footprint=2.0 / 1600)
+    model = FastConfig(preset="compact").setup(lego800)
+    rows = model.field.density_grid.hash_rows
+    big = [math.prod(r) > FINE_HASH_VERTICES for r in model.field.density_grid.resolutions]
+    assert rows == [None, None, 2**19, 2**LOG2_FINE_ROWS_BOUNDED, 2**LOG2_FINE_ROWS_BOUNDED] and big == [False, False, False, True, True]
+    assert model.field.feature_grid.hash_rows == rows
+    off = FastConfig(preset="compact", log2_fine_hashmap_size=0).setup(lego800)  # what an old run's config resolves to
+    assert off.capacity["log2_fine_hashmap_size"] is None and off.field.density_grid.hash_rows == [None, None] + [2**19] * 3
+    stored = {"preset": "compact"}
+    from nerfpipe.training.runs import _options_since
+
+    _options_since(FastConfig, stored)
+    assert stored["log2_fine_hashmap_size"] == 0
+    assert FastConfig(preset="small").setup(info()).capacity["log2_fine_hashmap_size"] is None
 
 
 def test_tighten_keeps_hashed_levels_and_checkpoints_round_trip():
@@ -238,10 +270,12 @@ def test_a_bounded_scenes_finer_level_keeps_the_sample_spacing():
     """A bounded scene whose pixels ask for more than :data:`MAX_FINEST` gets a hashed level of
     :data:`MAX_FINEST_BOUNDED` whose samples, with every level on, lie as far apart as the 256-level's would, and twice
     the model's memory at most; ``spacing`` overrides the level the spacing is counted in."""
+    from nerfpipe.models.fast import LOG2_FINE_ROWS_BOUNDED
+
     scene = info(num_images=300, pixels_per_image=800 * 800, pixel_footprint=2.0 / 800)
     model, plain = FastConfig(preset="compact").setup(scene), FastConfig(preset="compact", levels=(32, 64, 128, 256)).setup(scene)
     assert model.capacity["levels"][-1] == MAX_FINEST_BOUNDED and model.capacity["spacing"] == MAX_FINEST
-    assert model.field.density_grid.hash_rows[-1] == 2**19
+    assert model.field.density_grid.hash_rows[-2:] == [2**LOG2_FINE_ROWS_BOUNDED] * 2  # its pixels ask for large tables
     model.field.active_levels, plain.field.active_levels = 5, 4
     assert model.step_size == pytest.approx(plain.step_size, rel=1e-6)
     assert model.stats()["finest_voxel"] == pytest.approx(2.0 / (MAX_FINEST_BOUNDED - 1))

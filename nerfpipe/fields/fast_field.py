@@ -99,6 +99,7 @@ class FastField(nn.Module):
         init_density: density everywhere at the start (sets the activation shift).
         max_rows: levels with more vertices are hashed into tables of this many rows (None: all dense).
         dense_max: levels with at most this many vertices stay dense even above ``max_rows`` (None: ``max_rows``).
+        fine_rows: rows of the hashed levels of more than ``fine_min_vertices`` vertices (None: ``max_rows``).
             Hashed levels live on the lattice of the box the field was built in (``lattice``), which
             tightening the box leaves alone: only the dense levels are resampled to the new box.
     """
@@ -112,12 +113,15 @@ class FastField(nn.Module):
         init_density: float = 0.1,
         max_rows: "int | None" = None,
         dense_max: "int | None" = None,
+        fine_rows: "int | None" = None,
+        fine_min_vertices: int = 2**23,
     ) -> None:
         super().__init__()
         self.register_buffer("aabb", aabb.detach().clone().float())
         self.register_buffer("lattice", aabb.detach().clone().float())
-        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0, max_rows=max_rows, dense_max=dense_max)
-        self.feature_grid = DenseGridEncoding(resolutions, feature_channels, max_rows=max_rows, dense_max=dense_max)
+        rows = dict(max_rows=max_rows, dense_max=dense_max, fine_rows=fine_rows, fine_min_vertices=fine_min_vertices)
+        self.density_grid = DenseGridEncoding(resolutions, 1, init_scale=0.0, **rows)
+        self.feature_grid = DenseGridEncoding(resolutions, feature_channels, **rows)
         self.shift = math.log(math.expm1(init_density))
         self.active_levels = len(resolutions)
         """Levels in use (coarse-to-fine training switches finer ones on later; inactive read as 0)."""

@@ -261,11 +261,14 @@ class DenseGridEncoding(nn.Module):
         init_scale: features start uniform in ``[-init_scale, init_scale]``.
         max_rows: levels with more vertices are hashed into this many rows (a power of two; None: all dense).
         dense_max: levels with at most this many vertices stay dense even above ``max_rows`` (None: ``max_rows``).
+        fine_rows: hashed levels with more than ``fine_min_vertices`` vertices get this many rows instead of
+            ``max_rows`` (a power of two; None: ``max_rows``).
+        fine_min_vertices: see ``fine_rows``.
     """
 
     def __init__(
         self, resolutions: "list[tuple[int, int, int]]", channels: int, init_scale: float = 1e-4, max_rows: "int | None" = None,
-        dense_max: "int | None" = None,
+        dense_max: "int | None" = None, fine_rows: "int | None" = None, fine_min_vertices: int = 2**23,
     ) -> None:
         super().__init__()
         if max_rows is not None and (max_rows < 8 or max_rows & (max_rows - 1)):
@@ -274,7 +277,11 @@ class DenseGridEncoding(nn.Module):
         self.channels = channels
         full = [r[0] * r[1] * r[2] for r in self.resolutions]
         limit = max_rows if dense_max is None or max_rows is None else max(dense_max, max_rows)
-        self.hash_rows: "list[int | None]" = [max_rows if max_rows is not None and n > limit else None for n in full]
+        if fine_rows is not None and (fine_rows < 8 or fine_rows & (fine_rows - 1)):
+            raise ValueError(f"fine_rows must be a power of two of at least 8, got {fine_rows}")
+        self.hash_rows: "list[int | None]" = [
+            None if max_rows is None or n <= limit else fine_rows if fine_rows is not None and n > fine_min_vertices else max_rows for n in full
+        ]
         """Rows of each hashed level's table (None: the level is dense, one row per vertex)."""
         self.tables = nn.ParameterList(
             nn.Parameter(torch.empty(h or n, channels).uniform_(-init_scale, init_scale)) for n, h in zip(full, self.hash_rows)

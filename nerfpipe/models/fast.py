@@ -117,6 +117,22 @@ FINER_FROM = 2.0
 as many vertices (lego800's 800 do; 400² views of it, 400, do not: not measured there)."""
 
 
+FINE_HASH_VERTICES = 2**23
+"""Hashed levels with more vertices than this get :data:`LOG2_FINE_ROWS_BOUNDED` rows in a bounded scene whose pixels
+ask for that many (``log2_fine_hashmap_size``): where the 800² stand-in's occupied cells (about 12 % of its box) hold
+more vertices than 2^19 rows, at its 256- and 512-levels (2 and 16 million there), not at its 128-level (0.25 million)."""
+
+LOG2_FINE_ROWS_BOUNDED = 20
+"""Rows (log2) of the finest hashed levels (:data:`FINE_HASH_VERTICES`) of a bounded scene whose training pixels over 32
+are 2^20 or more. The 800² stand-in (``python -m benchmarks.lego800``, 4 views at full size, one ray per pixel, side by
+side at equal steps, 16,384 rays a step): the 2^19 rows of
+session 46 against these, **29.04 / 29.25 dB** after 600 steps (0.3 of the rays from the error map, the average scored) at
+1.05x the seconds per step, in 32.7 / 52.8 MB; with CUDA's 0.5 from the error map, 30.24 / **30.54** after 1,000
+(unaveraged) and 31.93 / **32.49** after 3,000 (31.83 / 32.40 unaveraged; issue #18's 32 dB), 52.7 MB. Every hashed level at
+2^20 rows had scored 32.34 in 63.1 MB (under the goal's 64 by 0.9 MB, and a scene whose 64-level stays dense would pass
+it); at this CPU's 4,096 rays 26.84 / 26.91 after 600 (every level at 2^20)."""
+
+
 def compact_capacity(info: SceneInfo) -> dict:
     """Capacity from the scene: the finest level resolves one training pixel at the box centre, the
     levels double from 32 vertices (at most :data:`MAX_LEVELS`, spaced evenly in log scale), and levels
@@ -134,11 +150,14 @@ def compact_capacity(info: SceneInfo) -> dict:
     growth = (finest / 32) ** (1 / (count - 1))
     levels = tuple(int(round(32 * growth**i)) for i in range(count))
     pixels = max(info.num_images * info.pixels_per_image, 1)
-    log2_rows = int(min(19, max(17, round(math.log2(pixels / 32)))))
-    out = dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows)
+    asked = round(math.log2(pixels / 32))
+    log2_rows = int(min(19, max(17, asked)))
+    out = dict(levels=levels, feature_channels=4, hidden=64, log2_hashmap_size=log2_rows, log2_fine_hashmap_size=None)
     if not info.unbounded and needed >= FINER_FROM * MAX_FINEST and len(levels) < MAX_LEVELS:
         # a bounded scene whose pixels resolve more than the finest level: one more, hashed, at the spacing of the last
         out.update(levels=levels + (int(min(needed, MAX_FINEST_BOUNDED)),), spacing=levels[-1])
+        if asked >= LOG2_FINE_ROWS_BOUNDED:  # and pixels enough for larger tables where the levels collide most
+            out.update(log2_fine_hashmap_size=LOG2_FINE_ROWS_BOUNDED)
     return out
 
 
@@ -310,7 +329,7 @@ def object_support(info: SceneInfo) -> "tuple[float, float, float, float] | None
 class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
 
-    OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False}
+    OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False, "log2_fine_hashmap_size": 0}
     """Options added since runs were first written (dotted names), with the value such a run was trained as: a run's
     ``config.json`` that lacks one renders, meshes and scores as it trained (:func:`nerfpipe.training.runs.load_run`)."""
 
@@ -324,6 +343,9 @@ class FastConfig:
     log2_hashmap_size: "int | None" = None
     """Override the preset's hashing: levels with more than 2^this vertices are hashed into 2^this rows
     (0: every level dense)."""
+    log2_fine_hashmap_size: "int | None" = None
+    """Override the preset's rows (2^this) of the hashed levels of more than :data:`FINE_HASH_VERTICES` vertices (0: as
+    the other hashed levels, ``log2_hashmap_size``)."""
     log2_dense_max: "int | None" = None
     """Levels of at most 2^this vertices are not hashed, even above ``log2_hashmap_size``'s rows: they start dense and are
     stored sparse once the box is tightened (``sparse_min_vertices``). None: ``log2_hashmap_size``. blender_lego (``medium``,
@@ -583,7 +605,8 @@ class FastConfig:
         name = auto_preset(scene_info) if self.preset == "auto" else self.preset  # a known name: __post_init__
         base = compact_capacity(scene_info) if name == "compact" else PRESETS[name]
         out = dict(base, preset=name)
-        for key in ("levels", "feature_channels", "hidden", "log2_hashmap_size"):
+        out.setdefault("log2_fine_hashmap_size", None)
+        for key in ("levels", "feature_channels", "hidden", "log2_hashmap_size", "log2_fine_hashmap_size"):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
         if self.levels is not None or not out.get("spacing"):  # levels of one's own: spacing in their finest voxel
@@ -592,6 +615,8 @@ class FastConfig:
             out["spacing"] = self.spacing
         if not out["log2_hashmap_size"]:
             out["log2_hashmap_size"] = None
+        if not out["log2_fine_hashmap_size"] or out["log2_hashmap_size"] is None:
+            out["log2_fine_hashmap_size"] = None
         return out
 
 
@@ -630,6 +655,8 @@ class FastModel(Model):
         self.field = FastField(
             aabb, self._resolutions(aabb), self.capacity["feature_channels"], self.capacity["hidden"],
             max_rows=None if log2_rows is None else 2**log2_rows, dense_max=None if cfg.log2_dense_max is None else 2**cfg.log2_dense_max,
+            fine_rows=None if self.capacity["log2_fine_hashmap_size"] is None else 2 ** self.capacity["log2_fine_hashmap_size"],
+            fine_min_vertices=FINE_HASH_VERTICES,
         )
         self.field.shift = math.log(math.expm1(-math.log1p(-cfg.init_alpha) / self.step_size))
         n_levels = len(self.capacity["levels"])
