@@ -271,14 +271,13 @@ class DenseGridEncoding(nn.Module):
         dense_max: "int | None" = None, fine_rows: "int | None" = None, fine_min_vertices: int = 2**23,
     ) -> None:
         super().__init__()
-        if max_rows is not None and (max_rows < 8 or max_rows & (max_rows - 1)):
-            raise ValueError(f"max_rows must be a power of two of at least 8, got {max_rows}")
+        for name, rows in (("max_rows", max_rows), ("fine_rows", fine_rows)):
+            if rows is not None and (rows < 8 or rows & (rows - 1)):
+                raise ValueError(f"{name} must be a power of two of at least 8, got {rows}")
         self.resolutions = [tuple(int(v) for v in r) for r in resolutions]
         self.channels = channels
         full = [r[0] * r[1] * r[2] for r in self.resolutions]
         limit = max_rows if dense_max is None or max_rows is None else max(dense_max, max_rows)
-        if fine_rows is not None and (fine_rows < 8 or fine_rows & (fine_rows - 1)):
-            raise ValueError(f"fine_rows must be a power of two of at least 8, got {fine_rows}")
         self.hash_rows: "list[int | None]" = [
             None if max_rows is None or n <= limit else fine_rows if fine_rows is not None and n > fine_min_vertices else max_rows for n in full
         ]
