@@ -94,6 +94,10 @@ class Model(nn.Module):
     """Whether the trainer draws a share of the rays from an error map by default on bounded scenes
     (``TrainerConfig.error_sampling`` None)."""
 
+    batch_follows_pixels: bool = False
+    """Whether the trainer's default batch on the CPU grows with a bounded scene's training images
+    (``TrainerConfig.rays_per_step`` None: :func:`nerfpipe.training.trainer.default_rays_per_step`)."""
+
     generator: "torch.Generator | None" = None
     """The stream of every random draw in training (sample jitter, occupancy refreshes, regulariser
     points), on the model's device. The trainer sets it so that a run is reproducible and leaves

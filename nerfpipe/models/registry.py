@@ -34,7 +34,8 @@ class Preset:
 
 TRAINER_DEFAULTS = {"fast": {"rays_per_step": None}, "vanilla": {"rays_per_step": 1024}}
 """Trainer options the built-in models are trained with by default (their measured recipes: README); the fast
-model's rays per step follow the device (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`)."""
+model's rays per step follow the device and, on the CPU, a bounded scene's images
+(:func:`nerfpipe.training.trainer.default_rays_per_step`)."""
 
 
 def presets() -> "dict[str, Preset]":

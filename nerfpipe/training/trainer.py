@@ -23,6 +23,7 @@ restarts a failed group the trainer resumes from the checkpoint, with the same o
 """
 
 import contextlib
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -71,6 +72,45 @@ def by_device(table: dict, device: str):
         (16384, 4096, 0.3)
     """
     return table.get(torch.device(device).type, table["cpu"])
+
+
+CPU_PIXELS_PER_RAY = 20
+"""On the CPU, a model whose batch follows the scene (:attr:`Model.batch_follows_pixels`: the ``fast`` model) takes one ray
+per step for about this many pixels of a bounded scene's training image (:func:`default_rays_per_step`), between
+:data:`DEVICE_RAYS_PER_STEP`'s 4,096 and :data:`CPU_MAX_RAYS_PER_STEP`. Part of a step's cost does not grow with its
+rays (the optimiser's pass over every parameter, the tables' gradients, the occupancy refreshes), and the field's
+capacity, so that part, grows with the pixels. ``nerfpipe bench DATA --presets fast --rays-per-step R`` at equal training
+seconds (session 50, this CPU, each alone, load ~2), after 100 / 250 s on the 800² stand-in (``python -m
+benchmarks.lego800``, 4 views at full size): 4,096 rays 25.98 / 27.50 dB (422 / 822 steps), 8,192 26.27 / 28.05, **16,384
+26.75 / 28.49** (229 / 504 steps); ``blender_lego`` (400², 5 views) after 60 / 150 s: 4,096 27.50 / 29.20 (396 / 779
+steps), **8,192 27.60 / 29.98** (249 / 599), 16,384 27.76 / 29.98; ``lego_200`` (200²) after 20 / 60 s: **4,096 27.22 /
+30.15** (152 / 500 steps), 8,192 26.48 / 30.33, 16,384 25.10 / 30.05 (a small scene's first seconds need many steps).
+Real captures keep 4,096: their held-out views lose per step with larger batches (colmap_mouse at 16,384 rays, 24.76
+against 24.82 dB after 900 steps: :data:`nerfpipe.models.fast.LR_REFERENCE_RAYS`)."""
+
+CPU_MAX_RAYS_PER_STEP = 16384
+"""The largest batch :data:`CPU_PIXELS_PER_RAY` gives."""
+
+
+def default_rays_per_step(device: str, info: SceneInfo, model: Model) -> int:
+    """Rays per step where ``rays_per_step`` is None: :data:`DEVICE_RAYS_PER_STEP` for the device, and on the CPU, for a
+    model whose batch follows the scene, one per :data:`CPU_PIXELS_PER_RAY` pixels of a bounded scene's training image
+    (rounded to a power of two, at most :data:`CPU_MAX_RAYS_PER_STEP`).
+
+    Example:
+        >>> import torch
+        >>> from nerfpipe.models.base import Model, SceneInfo
+        >>> fast = type("Fast", (Model,), {"batch_follows_pixels": True})()
+        >>> [default_rays_per_step("cpu", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, side * side), fast) for side in (200, 400, 800)]
+        [4096, 8192, 16384]
+        >>> default_rays_per_step("cuda", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, 800 * 800), fast)
+        16384
+    """
+    rays = by_device(DEVICE_RAYS_PER_STEP, device)
+    if torch.device(device).type == "cuda" or not model.batch_follows_pixels or info.unbounded or info.pixels_per_image <= 0:
+        return rays
+    wanted = 2 ** round(math.log2(max(info.pixels_per_image / CPU_PIXELS_PER_RAY, 1.0)))
+    return int(min(max(wanted, rays), CPU_MAX_RAYS_PER_STEP))
 
 
 MAX_RAYS_PER_STEP = 1 << 22
@@ -133,8 +173,8 @@ class TrainerConfig:
     """What ``train_budget`` and the training seconds count: ``wall`` seconds, or ``cpu`` (process CPU
     seconds divided by the torch threads; steadier on a shared machine)."""
     rays_per_step: "int | None" = 10000
-    """Rays per iteration, drawn uniformly from all pixels of all training images (None: by the device,
-    :data:`DEVICE_RAYS_PER_STEP`; the fast model's default). The run's ``config.json`` records the number used."""
+    """Rays per iteration, drawn uniformly from all pixels of all training images (None: by the device and the scene,
+    :func:`default_rays_per_step`; the fast model's default). The run's ``config.json`` records the number used."""
     train_max_size: "int | None" = None
     """Longer side in pixels of the images training rays are drawn from, at most: larger photographs are
     area-downscaled once at load (their cameras with them), so each ray's colour is the mean over its pixel's
@@ -414,11 +454,10 @@ class Trainer:
 
         self.started = time.monotonic() if started is None else started
         cfg = replace(cfg, device=check_device(cfg.device))  # auto resolved once: the run's config records the device used
-        if cfg.rays_per_step is None:  # likewise the batch chosen by the device
-            cfg = replace(cfg, rays_per_step=by_device(DEVICE_RAYS_PER_STEP, cfg.device))
         self.world = distributed.world(cfg.device)
+        if cfg.rays_per_step is not None:
+            self._check_rays(cfg.rays_per_step)
         if self.world.active:
-            refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
             cfg = replace(cfg, device=distributed.device_for(cfg.device, self.world))
         self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
         require_all(evaluation.dependencies(cfg))
@@ -427,6 +466,9 @@ class Trainer:
         info = scene_info(scene, cfg.train_max_size)
         model, init_rng = seeded_init(lambda: model_config.setup(info), cfg.seed)
         self.model: Model = model.to(cfg.device)
+        if cfg.rays_per_step is None:  # likewise the batch chosen by the device and the scene
+            cfg = self.cfg = replace(cfg, rays_per_step=default_rays_per_step(cfg.device, info, self.model))
+            self._check_rays(cfg.rays_per_step)
         self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
         if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
             self.model.generator.manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
@@ -474,6 +516,10 @@ class Trainer:
         self.validation_seconds = 0.0  # rendering for validations so far
         self.training_stopped_at: "float | None" = None  # wall seconds after start
         self.final_started_at: "float | None" = None  # after the final checkpoint
+
+    def _check_rays(self, rays_per_step: int) -> None:
+        if self.world.active:
+            refuse_unless([("rays_per_step", rays_per_step >= self.world.size, f"at least the {self.world.size} processes", rays_per_step)])
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
