@@ -84,7 +84,8 @@ seconds (session 50, this CPU, each alone, load ~2), after 100 / 250 s on the 80
 benchmarks.lego800``, 4 views at full size): 4,096 rays 25.98 / 27.50 dB (422 / 822 steps), 8,192 26.27 / 28.05, **16,384
 26.75 / 28.49** (229 / 504 steps); ``blender_lego`` (400², 5 views) after 60 / 150 s: 4,096 27.50 / 29.20 (396 / 779
 steps), **8,192 27.60 / 29.98** (249 / 599), 16,384 27.76 / 29.98; ``lego_200`` (200²) after 20 / 60 s: **4,096 27.22 /
-30.15** (152 / 500 steps), 8,192 26.48 / 30.33, 16,384 25.10 / 30.05 (a small scene's first seconds need many steps).
+30.15** (152 / 500 steps), 8,192 26.48 / 30.33, 16,384 25.10 / 30.05 (a small scene's first seconds need many steps);
+the 800² stand-in at 32,768 rays 26.58 / 28.18 (:data:`CPU_MAX_RAYS_PER_STEP`).
 Real captures keep 4,096: their held-out views lose per step with larger batches (colmap_mouse at 16,384 rays, 24.76
 against 24.82 dB after 900 steps: :data:`nerfpipe.models.fast.LR_REFERENCE_RAYS`)."""
 
