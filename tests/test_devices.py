@@ -122,28 +122,31 @@ def test_the_fast_models_batch_follows_the_device_and_is_recorded(tiny_lego, tmp
         assert json.loads((tmp_path / str(asked) / "config.json").read_text())["trainer"]["rays_per_step"] == expected
 
 
-def test_the_cpu_batch_follows_a_bounded_scenes_pixels(tiny_lego, tmp_path, monkeypatch):
-    """On the CPU the fast model's default batch grows with a bounded scene's training images (``default_rays_per_step``),
-    up to its cap; the learning rates follow the batch chosen; a real capture and the vanilla model keep the device's."""
+def test_the_cpu_batch_follows_the_pixels_of_an_object_on_a_transparent_background(tiny_lego, tmp_path, monkeypatch):
+    """On the CPU the fast model's default batch grows with the training images of an object on a transparent background
+    (``default_rays_per_step``), up to its cap; the learning rates follow the batch chosen; a scene without alpha, a real
+    capture and the vanilla model keep the device's."""
     from nerfpipe.models.fast import FastConfig
     from nerfpipe.models.vanilla import VanillaConfig
     from nerfpipe.training import trainer as trainer_module
     from nerfpipe.training.trainer import CPU_MAX_RAYS_PER_STEP, DEVICE_RAYS_PER_STEP, Trainer, scene_info
 
-    pixels = scene_info(tiny_lego).pixels_per_image
+    rgba = dataclasses.replace(tiny_lego, has_alpha=True)  # what the trainer reads of it here: the flag
+    pixels = scene_info(rgba).pixels_per_image
     cfg = TrainerConfig(iters=1, video_frames=0, write_outputs=False, rays_per_step=None, device="cpu")
     small = FastConfig(levels=(8, 16))
-    assert Trainer(cfg, tiny_lego, "fast", small, tmp_path / "a").rays == DEVICE_RAYS_PER_STEP["cpu"]  # tiny images
+    assert Trainer(cfg, rgba, "fast", small, tmp_path / "a").rays == DEVICE_RAYS_PER_STEP["cpu"]  # tiny images
     monkeypatch.setattr(trainer_module, "CPU_PIXELS_PER_RAY", pixels / (2 * DEVICE_RAYS_PER_STEP["cpu"]))
-    doubled = Trainer(cfg, tiny_lego, "fast", small, tmp_path / "b")
+    doubled = Trainer(cfg, rgba, "fast", small, tmp_path / "b")
     assert doubled.cfg.rays_per_step == doubled.rays == 2 * DEVICE_RAYS_PER_STEP["cpu"]
     assert doubled.model.lr_batch_scale == pytest.approx(2**0.5)  # the rates follow the batch chosen
+    assert Trainer(cfg, tiny_lego, "fast", small, tmp_path / "c").rays == DEVICE_RAYS_PER_STEP["cpu"]  # no alpha
     monkeypatch.setattr(trainer_module, "CPU_PIXELS_PER_RAY", pixels / 10**7)
-    assert Trainer(cfg, tiny_lego, "fast", small, tmp_path / "c").rays == CPU_MAX_RAYS_PER_STEP
-    info = dataclasses.replace(scene_info(tiny_lego), unbounded=True)
-    fast = Trainer(cfg, tiny_lego, "fast", small, tmp_path / "d").model
-    assert trainer_module.default_rays_per_step("cpu", info, fast) == DEVICE_RAYS_PER_STEP["cpu"]
-    assert Trainer(cfg, tiny_lego, "vanilla", VanillaConfig(), tmp_path / "e").rays == DEVICE_RAYS_PER_STEP["cpu"]
+    capped = Trainer(cfg, rgba, "fast", small, tmp_path / "d")
+    assert capped.rays == CPU_MAX_RAYS_PER_STEP
+    real = dataclasses.replace(scene_info(rgba), unbounded=True)
+    assert trainer_module.default_rays_per_step("cpu", real, capped.model) == DEVICE_RAYS_PER_STEP["cpu"]
+    assert Trainer(cfg, rgba, "vanilla", VanillaConfig(), tmp_path / "e").rays == DEVICE_RAYS_PER_STEP["cpu"]
 
 
 @pytest.mark.requires_cuda

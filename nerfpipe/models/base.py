@@ -95,7 +95,7 @@ class Model(nn.Module):
     (``TrainerConfig.error_sampling`` None)."""
 
     batch_follows_pixels: bool = False
-    """Whether the trainer's default batch on the CPU grows with a bounded scene's training images
+    """Whether the trainer's default batch on the CPU grows with the training images of an object on a transparent background
     (``TrainerConfig.rays_per_step`` None: :func:`nerfpipe.training.trainer.default_rays_per_step`)."""
 
     generator: "torch.Generator | None" = None

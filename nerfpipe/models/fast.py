@@ -636,7 +636,7 @@ class FastModel(Model):
     """A share of the rays from an error map on bounded scenes (:attr:`Model.error_sampled`): lego_200 after 300 steps
     28.75 -> 29.45 dB (``TrainerConfig.error_sampling``)."""
     batch_follows_pixels = True
-    """On the CPU, larger batches for bounded scenes with larger images (:data:`nerfpipe.training.trainer.CPU_PIXELS_PER_RAY`)."""
+    """On the CPU, larger batches for objects on transparent backgrounds with larger images (:data:`nerfpipe.training.trainer.CPU_PIXELS_PER_RAY`)."""
 
     def __init__(self, cfg: FastConfig, info: SceneInfo) -> None:
         super().__init__()

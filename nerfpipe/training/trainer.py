@@ -76,7 +76,7 @@ def by_device(table: dict, device: str):
 
 CPU_PIXELS_PER_RAY = 20
 """On the CPU, a model whose batch follows the scene (:attr:`Model.batch_follows_pixels`: the ``fast`` model) takes one ray
-per step for about this many pixels of a bounded scene's training image (:func:`default_rays_per_step`), between
+per step for about this many pixels of the training image of an object on a transparent background (:func:`default_rays_per_step`), between
 :data:`DEVICE_RAYS_PER_STEP`'s 4,096 and :data:`CPU_MAX_RAYS_PER_STEP`. Part of a step's cost does not grow with its
 rays (the optimiser's pass over every parameter, the tables' gradients, the occupancy refreshes), and the field's
 capacity, so that part, grows with the pixels. ``nerfpipe bench DATA --presets fast --rays-per-step R`` at equal training
@@ -85,9 +85,13 @@ benchmarks.lego800``, 4 views at full size): 4,096 rays 25.98 / 27.50 dB (422 / 
 26.75 / 28.49** (229 / 504 steps); ``blender_lego`` (400², 5 views) after 60 / 150 s: 4,096 27.50 / 29.20 (396 / 779
 steps), **8,192 27.60 / 29.98** (249 / 599), 16,384 27.76 / 29.98; ``lego_200`` (200²) after 20 / 60 s: **4,096 27.22 /
 30.15** (152 / 500 steps), 8,192 26.48 / 30.33, 16,384 25.10 / 30.05 (a small scene's first seconds need many steps);
-the 800² stand-in at 32,768 rays 26.58 / 28.18 (:data:`CPU_MAX_RAYS_PER_STEP`).
-Real captures keep 4,096: their held-out views lose per step with larger batches (colmap_mouse at 16,384 rays, 24.76
-against 24.82 dB after 900 steps: :data:`nerfpipe.models.fast.LR_REFERENCE_RAYS`)."""
+the 800² stand-in at 32,768 rays 26.58 / 28.18 (:data:`CPU_MAX_RAYS_PER_STEP`). Not tuned on: ``nerfstudio_lego`` (800², COLMAP's
+poses, 5 views) after 60 / 150 s 24.39 / 25.32 at 4,096, **25.38 / 26.24** at 16,384.
+Scenes without alpha keep 4,096: the rays of a real capture cross its surroundings, so a step's cost is mostly its rays'
+samples. ``ngp_fox`` read as a bounded scene (``nerfpipe train``, no sparse points; 4 views at a quarter size) after 60 /
+150 s: **18.79 / 19.26** at 4,096 (36 samples per ray), 18.56 / 18.89 at 16,384; real captures with sparse points
+(``nerfpipe run``) lose per step with larger batches too (colmap_mouse at 16,384 rays, 24.76 against 24.82 dB after
+900 steps: :data:`nerfpipe.models.fast.LR_REFERENCE_RAYS`)."""
 
 CPU_MAX_RAYS_PER_STEP = 16384
 """The largest batch :data:`CPU_PIXELS_PER_RAY` gives."""
@@ -95,20 +99,23 @@ CPU_MAX_RAYS_PER_STEP = 16384
 
 def default_rays_per_step(device: str, info: SceneInfo, model: Model) -> int:
     """Rays per step where ``rays_per_step`` is None: :data:`DEVICE_RAYS_PER_STEP` for the device, and on the CPU, for a
-    model whose batch follows the scene, one per :data:`CPU_PIXELS_PER_RAY` pixels of a bounded scene's training image
-    (rounded to a power of two, at most :data:`CPU_MAX_RAYS_PER_STEP`).
+    model whose batch follows the scene, one per :data:`CPU_PIXELS_PER_RAY` pixels of the training image of an object
+    on a transparent background (``SceneInfo.has_alpha``, bounded), rounded to a power of two, at most
+    :data:`CPU_MAX_RAYS_PER_STEP`.
 
     Example:
         >>> import torch
         >>> from nerfpipe.models.base import Model, SceneInfo
         >>> fast = type("Fast", (Model,), {"batch_follows_pixels": True})()
-        >>> [default_rays_per_step("cpu", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, side * side), fast) for side in (200, 400, 800)]
+        >>> [default_rays_per_step("cpu", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, side * side, has_alpha=True), fast) for side in (200, 400, 800)]
         [4096, 8192, 16384]
-        >>> default_rays_per_step("cuda", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, 800 * 800), fast)
+        >>> default_rays_per_step("cpu", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, 800 * 800), fast)  # no alpha
+        4096
+        >>> default_rays_per_step("cuda", SceneInfo(torch.zeros(2, 3), 0.1, 6.0, 100, 800 * 800, has_alpha=True), fast)
         16384
     """
     rays = by_device(DEVICE_RAYS_PER_STEP, device)
-    if torch.device(device).type == "cuda" or not model.batch_follows_pixels or info.unbounded or info.pixels_per_image <= 0:
+    if torch.device(device).type == "cuda" or not model.batch_follows_pixels or not info.has_alpha or info.unbounded or info.pixels_per_image <= 0:
         return rays
     wanted = 2 ** round(math.log2(max(info.pixels_per_image / CPU_PIXELS_PER_RAY, 1.0)))
     return int(min(max(wanted, rays), CPU_MAX_RAYS_PER_STEP))
