@@ -172,7 +172,8 @@ longer needed (then it is laid out again: :meth:`FastModel._relayout_sparse`).""
 
 LR_REFERENCE_RAYS = 4096
 """The batch (rays per training step) that :class:`FastConfig`'s learning rates are given for on bounded scenes: this
-CPU's default (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`); a GPU's 16,384 rays a step take them twice as
+CPU's default (:data:`nerfpipe.training.trainer.DEVICE_RAYS_PER_STEP`; larger for objects on transparent backgrounds
+with larger images: :func:`nerfpipe.training.trainer.default_rays_per_step`); a GPU's 16,384 rays a step take them twice as
 large (:func:`batch_lr_scale`). Session 45, side by side at equal steps with 16,384 rays a step (this CPU; one ray per
 pixel, the parameter average scored): the 800² stand-in (``python -m benchmarks.lego800``, 4 views at full size) the
 rates as given 28.55 / 31.25 dB after 600 / 3,000 steps, twice as large **29.04 / 31.82** (0.80x the seconds per step at
