@@ -34,7 +34,7 @@ class Preset:
 
 TRAINER_DEFAULTS = {"fast": {"rays_per_step": None}, "vanilla": {"rays_per_step": 1024}}
 """Trainer options the built-in models are trained with by default (their measured recipes: README); the fast
-model's rays per step follow the device and, on the CPU, a bounded scene's images
+model's rays per step follow the device and, on the CPU, the images of an object on a transparent background
 (:func:`nerfpipe.training.trainer.default_rays_per_step`)."""
 
 

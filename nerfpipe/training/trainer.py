@@ -115,7 +115,7 @@ def default_rays_per_step(device: str, info: SceneInfo, model: Model) -> int:
         16384
     """
     rays = by_device(DEVICE_RAYS_PER_STEP, device)
-    if torch.device(device).type == "cuda" or not model.batch_follows_pixels or not info.has_alpha or info.unbounded or info.pixels_per_image <= 0:
+    if torch.device(device).type == "cuda" or not model.batch_follows_pixels or not info.has_alpha or info.unbounded:
         return rays
     wanted = 2 ** round(math.log2(max(info.pixels_per_image / CPU_PIXELS_PER_RAY, 1.0)))
     return int(min(max(wanted, rays), CPU_MAX_RAYS_PER_STEP))
@@ -463,8 +463,6 @@ class Trainer:
         self.started = time.monotonic() if started is None else started
         cfg = replace(cfg, device=check_device(cfg.device))  # auto resolved once: the run's config records the device used
         self.world = distributed.world(cfg.device)
-        if cfg.rays_per_step is not None:
-            self._check_rays(cfg.rays_per_step)
         if self.world.active:
             cfg = replace(cfg, device=distributed.device_for(cfg.device, self.world))
         self.cfg, self.scene, self.out = cfg, scene, check_output_folder(out_dir)
@@ -476,7 +474,8 @@ class Trainer:
         self.model: Model = model.to(cfg.device)
         if cfg.rays_per_step is None:  # likewise the batch chosen by the device and the scene
             cfg = self.cfg = replace(cfg, rays_per_step=default_rays_per_step(cfg.device, info, self.model))
-            self._check_rays(cfg.rays_per_step)
+        if self.world.active:
+            refuse_unless([("rays_per_step", cfg.rays_per_step >= self.world.size, f"at least the {self.world.size} processes", cfg.rays_per_step)])
         self.model.generator = continued_generator(cfg.device, cfg.seed, init_rng)
         if self.world.rank:  # every rank jitters and refreshes with its own stream (rank 0: as one process)
             self.model.generator.manual_seed(distributed.rank_seed(cfg.seed, self.world.rank))
@@ -524,10 +523,6 @@ class Trainer:
         self.validation_seconds = 0.0  # rendering for validations so far
         self.training_stopped_at: "float | None" = None  # wall seconds after start
         self.final_started_at: "float | None" = None  # after the final checkpoint
-
-    def _check_rays(self, rays_per_step: int) -> None:
-        if self.world.active:
-            refuse_unless([("rays_per_step", rays_per_step >= self.world.size, f"at least the {self.world.size} processes", rays_per_step)])
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
