@@ -108,6 +108,18 @@ def test_the_orbit_sweeps_only_the_arc_the_cameras_cover():
     assert float(az.min()) >= -0.5 - 1e-4 and float(az.max()) <= 2.0 + 1e-4  # never behind, where no photograph looked
 
 
+def test_the_orbit_is_framed_as_the_typical_photograph_not_the_first():
+    """The path's intrinsics are those of the reference camera of the median field of view, whichever comes first."""
+    eyes = torch.tensor([[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [-4.0, 0.0, 2.0], [0.0, -4.0, 2.0], [3.0, 3.0, 2.0]])
+    focal = torch.tensor([20.0, 55.0, 50.0, 60.0, 45.0])  # the first the widest, as colmap_mouse's
+    size = torch.tensor([64, 64, 48, 64, 64]), torch.tensor([48, 48, 64, 48, 48])
+    ref = Cameras.create(look_at(eyes, torch.zeros(5, 3), torch.tensor([0.0, 0.0, 1.0])), focal, focal, size[0] / 2, size[1] / 2, *size)
+    cams = orbit_cameras(ref, torch.zeros(3), 6)
+    assert cams.fx.reshape(-1).tolist() == [50.0] * 6  # fov 100/80 = 1.25: the median of 0.5, 1.375, 1.25, 1.5, 1.125
+    assert (int(cams.width.reshape(-1)[0]), int(cams.height.reshape(-1)[0])) == (48, 64)  # its size and principal point
+    torch.testing.assert_close(cams.cx.reshape(-1), torch.full((6,), 24.0), check_dtype=False)
+
+
 def test_render_cameras_is_chunk_invariant():
     torch.manual_seed(0)
     model = VanillaConfig(num_samples=8, field=TINY).setup(INFO)

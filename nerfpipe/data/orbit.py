@@ -72,10 +72,21 @@ def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap:
     return start + span * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))
 
 
+def typical_camera(reference: Cameras) -> Cameras:
+    """The reference camera of the median field of view (focal length over the image diagonal), a real one (its
+    size, principal point and focal lengths kept): a path's frames framed as a typical photograph, not as whichever
+    came first (colmap_mouse's first photograph is its widest, 0.47 of its longer side against a median of 0.72:
+    through it the object filled a third of the frame's width that it fills in the photographs)."""
+    flat = reference.reshape(-1)
+    fov = (flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())
+    order = torch.sort(fov.reshape(-1), stable=True).indices
+    return flat[int(order[(len(order) - 1) // 2])]
+
+
 def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
     """Cameras around ``center`` (about +z) at the reference cameras' mean distance and elevation, with the
-    intrinsics of the first reference camera: a full circle, or the arc the reference cameras cover
-    (:func:`orbit_azimuths`)."""
+    intrinsics of the reference camera of the median field of view (:func:`typical_camera`): a full circle, or the
+    arc the reference cameras cover (:func:`orbit_azimuths`)."""
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())
     elevation = float(torch.asin((offsets[:, 2] / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
@@ -83,7 +94,7 @@ def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: in
     ring = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=-1) * math.cos(elevation)
     eye = center.double() + radius * (ring + torch.tensor([0.0, 0.0, math.sin(elevation)], dtype=torch.float64))
     m = look_at(eye, center.double().expand_as(eye), torch.tensor(WORLD_UP, dtype=torch.float64))
-    r = reference.reshape(-1)[0]
+    r = typical_camera(reference)
     return Cameras.create(m, r.fx, r.fy, r.cx, r.cy, r.width, r.height, dtype=reference.fx.dtype)
 
 
