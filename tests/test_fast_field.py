@@ -251,6 +251,23 @@ def test_capacity_follows_the_scene():
         FastConfig(preset="huge").setup(info())
 
 
+def test_adams_second_moment_decay_follows_the_scene():
+    """instant-ngp's 0.99 on bounded scenes, torch's 0.999 for real captures, in every parameter group; refused outside [0, 1)."""
+    from nerfpipe.models.fast import ADAM_BETA2, ADAM_BETA2_REAL
+
+    bounded = FastConfig(**TINY).setup(info())
+    real = FastConfig(**TINY, background_field=False).setup(info(unbounded=True))
+    assert (ADAM_BETA2, ADAM_BETA2_REAL) == (0.99, 0.999)
+    assert {g["betas"] for g in bounded.param_groups()} == {(0.9, ADAM_BETA2)}
+    assert {g["betas"] for g in real.param_groups()} == {(0.9, ADAM_BETA2_REAL)}
+    given = FastConfig(**TINY, adam_beta2=0.95).setup(info(unbounded=True))
+    assert {g["betas"] for g in given.param_groups(4096)} == {(0.9, 0.95)}
+    opt = torch.optim.Adam(bounded.param_groups(4096))  # what the trainer builds: the groups' own betas win
+    assert {g["betas"] for g in opt.param_groups} == {(0.9, ADAM_BETA2)}
+    with pytest.raises(ValueError, match="adam_beta2"):
+        FastConfig(adam_beta2=1.0)
+
+
 def test_a_presets_spacing_level_sets_the_sample_spacing():
     """``medium``'s hashed finest level (256) keeps the sample spacing of the dense 192 it replaced: with every level on,
     its samples are as far apart as the old preset's (and as ``step_ratio`` says in 192-level voxels); levels of one's

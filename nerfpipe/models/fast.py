@@ -208,6 +208,20 @@ measured worse on colmap_mouse (session 9: tenfold per 700 / 500 steps, 24.29 / 
 24.33); the slower decay of bounded scenes neither helps nor hurts there (session 25, side by side, 7 views at 400 px:
 24.42 / 24.37 dB after 600 / 900 steps against 24.45 / 24.37), so they keep this one."""
 
+ADAM_BETA2 = 0.99
+"""Adam's second-moment decay (``FastConfig.adam_beta2``) on bounded scenes: instant-ngp's (torch's default is 0.999),
+the moments of a grid row that rays reach now and then following its gradients' scale within a hundred steps instead
+of a thousand. Side by side at equal steps (session 51; after the last mark the parameter average scored): lego_200 (10 views) 29.12 / 32.05
+-> 29.14 / **32.27 dB** after 300 / 1,000 steps; blender_lego (5 views at 400², 4,096 rays) 26.90 / 30.03 -> 26.93 /
+**30.18**; the 800² stand-in (``python -m benchmarks.lego800``, 4 views, 16,384 rays) 30.50 -> **30.71** after 1,000 (30.28
+-> 30.45 unaveraged), at 0.94x the seconds per step (8.0 against 9.0 samples per ray)."""
+
+ADAM_BETA2_REAL = 0.999
+"""The same for real captures, where 0.99 neither helps nor hurts (session 51, side by side at equal steps, 400 px, the
+average scored; 0.999 against 0.99): colmap_mouse (7 views) 24.58 / 24.79 against 24.57 / 24.76 dB after 600 / 900
+steps, a posed 23-photo cut of it (3 views) 24.58 against 24.56 after 600, the synthetic room (``nerfpipe synth --scene
+room``, 7 views) 30.44 against 30.48: torch's default kept."""
+
 APPEARANCE_FIT_RAYS = 16384
 """Rays of a held-out view's left half that :meth:`FastModel.fitted_appearance` fits its appearance to (a random
 subset; the box's colour along them is rendered once, what the appearance changes at every step)."""
@@ -394,6 +408,9 @@ class FastConfig:
     average out half of the noise of a step's mean gradient, and the steps may be twice as long). None:
     :data:`LR_REFERENCE_RAYS` on bounded scenes, the rates as given at any batch for real captures
     (``SceneInfo.unbounded``); 0: never scaled. See :data:`LR_REFERENCE_RAYS`."""
+    adam_beta2: "float | None" = None
+    """Adam's second-moment decay for every parameter group (None: :data:`ADAM_BETA2` on bounded scenes,
+    :data:`ADAM_BETA2_REAL` for real captures)."""
     lr_decay_steps: "int | None" = None
     """Learning rates fall tenfold every this many steps (exponentially; 0: constant; None: :data:`LR_DECAY_STEPS`, or
     :data:`LR_DECAY_STEPS_REAL` for real captures)."""
@@ -584,6 +601,8 @@ class FastConfig:
     def __post_init__(self) -> None:
         if self.preset != "auto" and self.preset not in PRESETS:  # checked when configured, not when training starts
             raise ValueError(f"unknown preset {self.preset!r}; choose from auto, {', '.join(PRESETS)}")
+        if self.adam_beta2 is not None and not 0.0 <= self.adam_beta2 < 1.0:
+            raise ValueError(f"adam_beta2 must lie in [0, 1), got {self.adam_beta2}")
 
     def setup(self, scene_info: SceneInfo) -> "FastModel":
         return FastModel(self, scene_info)
@@ -668,6 +687,8 @@ class FastModel(Model):
         real = info.unbounded
         self.lr_decay_steps = (LR_DECAY_STEPS_REAL if real else LR_DECAY_STEPS) if cfg.lr_decay_steps is None else cfg.lr_decay_steps
         """Steps over which learning rates fall tenfold (:attr:`FastConfig.lr_decay_steps` resolved for the scene)."""
+        self.adam_beta2 = (ADAM_BETA2_REAL if real else ADAM_BETA2) if cfg.adam_beta2 is None else cfg.adam_beta2
+        """Adam's second-moment decay (:attr:`FastConfig.adam_beta2` resolved for the scene)."""
         self.lr_reference_rays = (None if real else LR_REFERENCE_RAYS) if cfg.lr_reference_rays is None else (cfg.lr_reference_rays or None)
         """The batch the learning rates are given for (:attr:`FastConfig.lr_reference_rays` resolved for the scene; None: not scaled)."""
         self.lr_batch_scale = 1.0
@@ -1188,6 +1209,7 @@ class FastModel(Model):
             self.lr_batch_scale = scale
         for group in groups:
             group["lr"] *= scale
+            group["betas"] = (0.9, self.adam_beta2)
         return groups
 
     def _param_groups(self) -> "list[dict]":
