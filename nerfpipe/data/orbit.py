@@ -73,14 +73,13 @@ def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap:
 
 
 def typical_camera(reference: Cameras) -> Cameras:
-    """The reference camera of the median field of view (focal length over the image diagonal), a real one (its
+    """The reference camera of the median field of view (mean focal length over the image diagonal), a real one (its
     size, principal point and focal lengths kept): a path's frames framed as a typical photograph, not as whichever
-    came first (colmap_mouse's first photograph is its widest, 0.47 of its longer side against a median of 0.72:
-    through it the object filled a third of the frame's width that it fills in the photographs)."""
+    came first (colmap_mouse's first photograph is its widest, focal length 0.47 of its longer side against a median
+    of 0.72: through it the mouse showed at two thirds of its size in the photographs)."""
     flat = reference.reshape(-1)
-    fov = (flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())
-    order = torch.sort(fov.reshape(-1), stable=True).indices
-    return flat[int(order[(len(order) - 1) // 2])]
+    zoom = (flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())
+    return flat[int(zoom.median(0).indices)]
 
 
 def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
