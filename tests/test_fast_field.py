@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.data_adapters import load
 from nerfpipe.estimators.occupancy import OccupancyGridConfig
-from nerfpipe.functional.gather import corner_sum, row_dot
+from nerfpipe.functional.gather import gather_rows_sum, row_dot
 from nerfpipe.fields.grid import DenseGridEncoding, grid_gather, hashed_row_reference, trilinear, trilinear_corners
 from nerfpipe.models.base import SceneInfo
 from nerfpipe.models.fast import (
@@ -60,16 +60,28 @@ def test_gather_gradients_match_dense_products(device, tol):
 
 
 @pytest.mark.parametrize("channels", [1, 4])
-def test_both_corner_contractions_agree(device, tol, channels):
-    """The batched product (the CPU's route) and the product-and-sum (CUDA's route) of the gather, forward and the
-    backward into the weights, on the same device: the route is chosen by device, so each is tested here on both."""
+def test_both_weight_gradient_routes_agree(device, tol, channels):
+    """The batched product (the CPU's route) and the product-and-sum (CUDA's route) of the gather's backward into
+    the weights, on the same device: the route is chosen by device, so each is tested here on both."""
     g = torch.Generator().manual_seed(6)
-    w, rows = torch.rand(50, 8, generator=g).to(device), torch.randn(50, 8, channels, generator=g).to(device)
-    v = torch.randn(50, channels, generator=g).to(device)
-    ref_sum, ref_dot = (w[:, :, None] * rows).sum(1), (rows * v[:, None, :]).sum(-1)
+    rows, v = torch.randn(50, 8, channels, generator=g).to(device), torch.randn(50, channels, generator=g).to(device)
     for batched in (True, False):
-        torch.testing.assert_close(corner_sum(w, rows, batched), ref_sum, **tol(torch.float32))
-        torch.testing.assert_close(row_dot(rows, v, batched), ref_dot, **tol(torch.float32))
+        torch.testing.assert_close(row_dot(rows, v, batched), (rows * v[:, None, :]).sum(-1), **tol(torch.float32))
+
+
+@pytest.mark.parametrize("corners", [4, 8])
+def test_gather_forward_matches_indexing(device, dtype, tol, corners):
+    """The forward (``embedding_bag``'s weighted sum on the CPU, a gather and a contraction elsewhere) against plain
+    indexing, with repeated rows, int32 and int64 indices, and no points at all."""
+    g = torch.Generator().manual_seed(7)
+    table = torch.randn(30, 3, generator=g, dtype=dtype).to(device)
+    idx = torch.randint(0, 30, (64, corners), generator=g).to(device)
+    idx[0] = 5  # one row taken by every corner
+    w = torch.rand(64, corners, generator=g, dtype=dtype).to(device)
+    ref = (w[:, :, None] * table[idx]).sum(1)
+    for index in (idx, idx.int()):
+        torch.testing.assert_close(gather_rows_sum(table, index, w), ref, **tol(dtype))
+    assert gather_rows_sum(table, idx[:0], w[:0]).shape == (0, 3)
 
 
 def test_trilinear_matches_grid_sample(tol):

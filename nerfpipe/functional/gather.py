@@ -1,14 +1,16 @@
 """Weighted gathers from channels-last tables: the kernel of every grid encoding.
 
 ``out[n] = sum_k w[n, k] * table[idx[n, k]]``, with ``K`` corners per point (4 for bilinear,
-8 for trilinear). The forward is one ``index_select`` and a contraction over the corners; the
-backward into the table is a single ``index_add_`` (``embedding_bag``'s own backward sorts indices
-and is several times slower on CPU).
+8 for trilinear). On the CPU the forward is ``embedding_bag``'s weighted sum (one pass over the rows,
+no ``K``-times larger intermediate: 3-6x faster than an ``index_select`` and a contraction there,
+session 52); elsewhere it is an ``index_select`` and a contraction over the corners (:func:`corner_sum`).
+The backward into the table is a single ``index_add_`` on every device (``embedding_bag``'s own backward
+sorts indices and is 1.5-2x slower on CPU).
 
-The contraction is a batched matrix product on the CPU (2-4x faster there than a product and a
-sum) and a product and a sum elsewhere: on CUDA the batched product of ``1 x K`` by ``K x C``
-matrices runs as cuBLAS's batched matrix-vector kernel, which took 5 of the 8 ms of GPU time of a
-fast training step on an H200 (session 22).
+The backward into the weights (:func:`row_dot`) is a batched matrix product on the CPU (2-4x faster
+there than a product and a sum) and a product and a sum elsewhere: on CUDA the batched product of
+``1 x K`` by ``K x C`` matrices runs as cuBLAS's batched matrix-vector kernel, which took 5 of the 8
+ms of GPU time of a fast training step on an H200 (session 22).
 """
 
 import torch
@@ -16,12 +18,9 @@ import torch
 from nerfpipe.util.typing import Float, Int, Tensor
 
 
-def corner_sum(
-    w: Float[Tensor, "num_points K"], rows: Float[Tensor, "num_points K C"], batched: bool
-) -> Float[Tensor, "num_points C"]:
-    """``sum_k w[n, k] * rows[n, k]``: a batched matrix product (``batched``, the CPU's choice) or a product and a sum."""
-    if batched:
-        return torch.bmm(w[:, None, :], rows)[:, 0]
+def corner_sum(w: Float[Tensor, "num_points K"], rows: Float[Tensor, "num_points K C"]) -> Float[Tensor, "num_points C"]:
+    """``sum_k w[n, k] * rows[n, k]`` as a product and a sum (off the CPU; on CUDA the batched product of ``1 x K``
+    by ``K x C`` matrices ran as cuBLAS's batched matrix-vector kernel, 5 of the 8 ms of a step on an H200)."""
     return (w[:, :, None] * rows).sum(1)
 
 
@@ -34,13 +33,23 @@ def row_dot(
     return (rows * v[:, None, :]).sum(-1)
 
 
+def gather_rows_sum(
+    table: Float[Tensor, "num_cells C"], idx: Int[Tensor, "num_points K"], w: Float[Tensor, "num_points K"]
+) -> Float[Tensor, "num_points C"]:
+    """The gather's forward, not differentiable: ``embedding_bag``'s weighted sum on the CPU, else an
+    ``index_select`` and :func:`corner_sum` (the reference route, and CUDA's: its graph-captured step was measured so)."""
+    if table.device.type == "cpu":
+        return torch.nn.functional.embedding_bag(idx, table, per_sample_weights=w.to(table.dtype), mode="sum")
+    n, k = idx.shape
+    rows = table.index_select(0, idx.reshape(-1)).view(n, k, table.shape[1])
+    return corner_sum(w, rows)
+
+
 class _WeightedGather(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table, idx, w):
-        n, k = idx.shape
-        rows = table.index_select(0, idx.reshape(-1)).view(n, k, table.shape[1])
         ctx.save_for_backward(table, idx, w)
-        return corner_sum(w, rows, table.device.type == "cpu")
+        return gather_rows_sum(table, idx, w)
 
     @staticmethod
     def backward(ctx, grad_out):
