@@ -81,6 +81,8 @@ def test_gather_forward_matches_indexing(device, dtype, tol, corners):
     ref = (w[:, :, None] * table[idx]).sum(1)
     for index in (idx, idx.int()):
         torch.testing.assert_close(gather_rows_sum(table, index, w), ref, **tol(dtype))
+    wide = torch.cat([table, table], dim=1)[:, 2:5]  # a strided view, as a slice of a larger table is
+    torch.testing.assert_close(gather_rows_sum(wide, idx.t().contiguous().t(), w), (w[:, :, None] * wide[idx]).sum(1), **tol(dtype))
     assert gather_rows_sum(table, idx[:0], w[:0]).shape == (0, 3)
 
 
