@@ -5,7 +5,7 @@
 no ``K``-times larger intermediate: 3-6x faster than an ``index_select`` and a contraction there,
 session 52); elsewhere it is an ``index_select`` and a contraction over the corners (:func:`corner_sum`).
 The backward into the table is a single ``index_add_`` on every device (``embedding_bag``'s own backward
-sorts indices and is 1.5-2x slower on CPU).
+sorts indices: as fast or up to 1.8x slower on CPU).
 
 The backward into the weights (:func:`row_dot`) is a batched matrix product on the CPU (2-4x faster
 there than a product and a sum) and a product and a sum elsewhere: on CUDA the batched product of
