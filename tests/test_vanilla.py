@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.data.orbit import look_at, orbit_azimuths, orbit_cameras
+from nerfpipe.data.orbit import AROUND_ARC, look_at, orbit_azimuths, orbit_cameras, photo_path_cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.models.base import Model, ModelSpec, SceneInfo
@@ -118,6 +118,41 @@ def test_the_orbit_is_framed_as_the_typical_photograph_not_the_first():
     assert cams.fx.reshape(-1).tolist() == [50.0] * 6  # fov 100/80 = 1.25: the median of 0.5, 1.375, 1.25, 1.5, 1.125
     assert (int(cams.width.reshape(-1)[0]), int(cams.height.reshape(-1)[0])) == (48, 64)  # its size and principal point
     torch.testing.assert_close(cams.cx.reshape(-1), torch.full((6,), 24.0), check_dtype=False)
+
+
+def test_a_capture_that_does_not_surround_its_object_gets_a_path_along_its_photographs():
+    """A facade or photo collection (arc under AROUND_ARC): frames pass the photographs' own viewpoints, in azimuth
+    order there and back, upright, each looking where the photographs near it look, at their field of view."""
+    az = torch.tensor([0.9, 0.1, 0.5, 0.3, 0.7])  # a 46-degree arc, out of order
+    dist = torch.tensor([6.0, 3.0, 3.5, 5.0, 3.0])  # near and far photographs, as a collection's
+    eyes = torch.stack([dist * torch.cos(az), dist * torch.sin(az), 0.2 * dist], -1)
+    targets = torch.tensor([[0.0, 0.0, 0.5]]) + 0.3 * torch.randn(5, 3, generator=torch.Generator().manual_seed(0))
+    focal = 10.0 * dist  # the far ones zoomed in
+    ref = Cameras.create(look_at(eyes, targets, torch.tensor([0.0, 0.0, 1.0])), focal, focal, 32.0, 24.0, 64, 48)
+    center = torch.zeros(3)
+    assert torch.equal(orbit_cameras(ref, center, 20).world_from_cam, photo_path_cameras(ref, center, 20).world_from_cam)
+    sharp = photo_path_cameras(ref, center, 20, smoothing=1e-3)  # no smoothing: frame 0 and 10 are the end photographs
+    order = torch.argsort(az)
+    for frame, cam in ((0, int(order[0])), (10, int(order[-1]))):
+        torch.testing.assert_close(sharp.centers[frame], eyes[cam], atol=1e-4, rtol=0)
+        torch.testing.assert_close(sharp.forward[frame], ref.forward[cam], atol=1e-4, rtol=0)
+        torch.testing.assert_close(sharp.fx[frame], focal[cam], atol=1e-3, rtol=0, check_dtype=False)
+    cams = photo_path_cameras(ref, center, 40)
+    rot = cams.world_from_cam[:, :3, :3]
+    torch.testing.assert_close(rot.transpose(1, 2) @ rot, torch.eye(3).expand(40, 3, 3), atol=1e-5, rtol=0)
+    assert torch.all(rot[:, 2, 0].abs() < 1e-6) and torch.all(-rot[:, 2, 1] > 0)  # upright, no roll
+    path_az = torch.atan2(cams.centers[:, 1], cams.centers[:, 0])
+    assert float(path_az.min()) >= 0.1 - 1e-4 and float(path_az.max()) <= 0.9 + 1e-4  # where the photographs stood
+    d = (cams.centers - center).norm(dim=-1)
+    assert 3.0 * 1.02 - 1e-3 <= float(d.min()) and float(d.max()) <= 6.0 * 1.02 + 1e-3  # between the nearest and the farthest
+    assert torch.all((cams.centers[1:] - cams.centers[:-1]).norm(dim=-1) < 1.0)  # smooth: no jumps between frames
+    _, z = cams.project(torch.tensor([0.0, 0.0, 0.5]).expand(40, 3))
+    assert torch.all(z > 0)  # the scene in front of every frame
+    ring = torch.linspace(0, 2 * math.pi, 9)[:-1]  # all round: the orbit, not the photographs' path
+    around = Cameras.create(look_at(torch.stack([4 * torch.cos(ring), 4 * torch.sin(ring), torch.ones(8)], -1), torch.zeros(8, 3),
+                                    torch.tensor([0.0, 0.0, 1.0])), 50.0, 50.0, 32.0, 24.0, 64, 48)  # fmt: skip
+    torch.testing.assert_close((orbit_cameras(around, center, 12).centers - center).norm(dim=-1), torch.full((12,), math.sqrt(17.0)), atol=1e-4, rtol=0)
+    assert AROUND_ARC > math.radians(46)
 
 
 def test_render_cameras_is_chunk_invariant():

@@ -82,10 +82,49 @@ def typical_camera(reference: Cameras) -> Cameras:
     return flat[int(zoom.median(0).indices)]
 
 
+AROUND_ARC = math.radians(120)
+"""Azimuth arc about the scene centre the photographs must cover for the orbit to circle the object (the fast model's
+``SPARSITY_MIN_ARC``: objects photographed from around them). Facades and photo collections cover less: their path
+passes along the photographs' own viewpoints (:func:`photo_path_cameras`)."""
+
+PHOTO_PATH_SMOOTHING = 1.0
+"""Width (standard deviation, in photographs) of the Gaussian window that smooths :func:`photo_path_cameras`' path."""
+
+
+def photo_path_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60,
+                       smoothing: float = PHOTO_PATH_SMOOTHING) -> Cameras:
+    """A path along the reference cameras' own viewpoints, for captures that do not surround their object (a facade,
+    a photo collection): an orbit at their mean distance shows the scene from where no photograph stood, and the
+    object region's box with what fills it shows there (the Sacre Coeur as a cube of sky fog). The cameras are taken
+    in order of azimuth about ``center``, there and back (eased at the ends, as :func:`orbit_azimuths`); each frame's
+    position, viewing direction and field of view (focal length over image diagonal) are the means of the cameras'
+    under a Gaussian window of ``smoothing`` photographs around its place in that order, upright (+z up); its image
+    size and principal point are the typical camera's (:func:`typical_camera`)."""
+    flat = reference.reshape(-1)
+    order = torch.argsort(azimuths(flat, center))
+    flat = flat[order]
+    n = len(flat)
+    frames = torch.arange(num_frames, dtype=torch.float64)
+    place = (n - 1) * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))  # [F] in [0, n - 1], there and back
+    w = torch.exp(-0.5 * ((place[:, None] - torch.arange(n, dtype=torch.float64)) / max(smoothing, 1e-6)) ** 2)
+    w = w / w.sum(-1, keepdim=True)  # [F, n]
+    eye = w @ flat.centers.double()
+    fwd = torch.nn.functional.normalize(w @ flat.forward.double(), dim=-1)
+    zoom = w @ ((flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())).reshape(-1)
+    m = look_at(eye, eye + fwd, torch.tensor(WORLD_UP, dtype=torch.float64))
+    r = typical_camera(reference)
+    focal = zoom * math.hypot(float(r.width), float(r.height)) / 2  # the mean of fx and fy, as zoom is
+    return Cameras.create(m, focal, focal, r.cx.double().expand(num_frames), r.cy.double().expand(num_frames),
+                          r.width.expand(num_frames), r.height.expand(num_frames), dtype=reference.fx.dtype)
+
+
 def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
     """Cameras around ``center`` (about +z) at the reference cameras' mean distance and elevation, with the
     intrinsics of the reference camera of the median field of view (:func:`typical_camera`): a full circle, or the
-    arc the reference cameras cover (:func:`orbit_azimuths`)."""
+    arc the reference cameras cover (:func:`orbit_azimuths`). Where that arc is under :data:`AROUND_ARC`, the path
+    along the photographs' viewpoints instead (:func:`photo_path_cameras`)."""
+    if len(reference.reshape(-1)) >= 3 and camera_arc(reference, center) < AROUND_ARC:
+        return photo_path_cameras(reference, center, num_frames)
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())
     elevation = float(torch.asin((offsets[:, 2] / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
