@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.data.orbit import AROUND_ARC, look_at, orbit_azimuths, orbit_cameras, photo_path_cameras
+from nerfpipe.data.orbit import AROUND_ARC, PHOTO_PATH_SPREAD, distance_spread, look_at, orbit_azimuths, orbit_cameras, photo_path_cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.fields.vanilla import VanillaField, VanillaFieldConfig
 from nerfpipe.models.base import Model, ModelSpec, SceneInfo
@@ -120,9 +120,11 @@ def test_the_orbit_is_framed_as_the_typical_photograph_not_the_first():
     torch.testing.assert_close(cams.cx.reshape(-1), torch.full((6,), 24.0), check_dtype=False)
 
 
-def test_a_capture_that_does_not_surround_its_object_gets_a_path_along_its_photographs():
-    """A facade or photo collection (arc under AROUND_ARC): frames pass the photographs' own viewpoints, in azimuth
-    order there and back, upright, each looking where the photographs near it look, at their field of view."""
+def test_a_collection_from_near_and_far_gets_a_path_along_its_photographs():
+    """Photographs that do not surround their object (arc under AROUND_ARC) taken from near and far (distances spread
+    over PHOTO_PATH_SPREAD): frames pass the photographs' own viewpoints, in azimuth order there and back, upright, each
+    looking where the photographs near it look, at their field of view. At one distance (a facade, an object on a wall)
+    the orbit stays."""
     az = torch.tensor([0.9, 0.1, 0.5, 0.3, 0.7])  # a 46-degree arc, out of order
     dist = torch.tensor([6.0, 3.0, 3.5, 5.0, 3.0])  # near and far photographs, as a collection's
     eyes = torch.stack([dist * torch.cos(az), dist * torch.sin(az), 0.2 * dist], -1)
@@ -152,7 +154,10 @@ def test_a_capture_that_does_not_surround_its_object_gets_a_path_along_its_photo
     around = Cameras.create(look_at(torch.stack([4 * torch.cos(ring), 4 * torch.sin(ring), torch.ones(8)], -1), torch.zeros(8, 3),
                                     torch.tensor([0.0, 0.0, 1.0])), 50.0, 50.0, 32.0, 24.0, 64, 48)  # fmt: skip
     torch.testing.assert_close((orbit_cameras(around, center, 12).centers - center).norm(dim=-1), torch.full((12,), math.sqrt(17.0)), atol=1e-4, rtol=0)
-    assert AROUND_ARC > math.radians(46)
+    assert AROUND_ARC > math.radians(46) and distance_spread(ref, center) > PHOTO_PATH_SPREAD
+    steady = Cameras.create(look_at(eyes / dist[:, None] * 4.0, targets, torch.tensor([0.0, 0.0, 1.0])), 40.0, 40.0, 32.0, 24.0, 64, 48)
+    torch.testing.assert_close((orbit_cameras(steady, center, 12).centers - center).norm(dim=-1), torch.full((12,), 4.0 * math.sqrt(1.04)),
+                               atol=1e-4, rtol=0)  # fmt: skip
 
 
 def test_render_cameras_is_chunk_invariant():

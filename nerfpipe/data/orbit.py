@@ -83,18 +83,33 @@ def typical_camera(reference: Cameras) -> Cameras:
 
 
 AROUND_ARC = math.radians(120)
-"""Azimuth arc about the scene centre the photographs must cover for the orbit to circle the object (the fast model's
-``SPARSITY_MIN_ARC``: objects photographed from around them). Facades and photo collections cover less: their path
-passes along the photographs' own viewpoints (:func:`photo_path_cameras`)."""
+"""Azimuth arc about the scene centre that photographs of an object taken from around it cover (the fast model's
+``SPARSITY_MIN_ARC``); facades and photo collections cover less (the Sceaux castle 63°, the Sacre Coeur 43°)."""
+
+PHOTO_PATH_SPREAD = 0.5
+"""Spread of the photographs' distances to the scene centre (interquartile range over median) above which a capture
+that does not surround its object (:data:`AROUND_ARC`) gets the path along its photographs (:func:`photo_path_cameras`)
+instead of an orbit at their mean distance: a collection taken from near and far (the Sacre Coeur 2.56), where that
+distance is nobody's. Object and facade captures keep the orbit's steady framing (ngp_fox 0.29, the Sceaux castle 0.09,
+colmap_mouse 0.14): along ngp_fox's close-ups the fox came and went at the frame's edge."""
 
 PHOTO_PATH_SMOOTHING = 1.0
 """Width (standard deviation, in photographs) of the Gaussian window that smooths :func:`photo_path_cameras`' path."""
 
 
+def distance_spread(cameras: Cameras, center: Float[Tensor, "3"]) -> float:
+    """Interquartile range over median of the cameras' distances to ``center`` (0 for fewer than two)."""
+    d = (cameras.centers.reshape(-1, 3).double() - center.double()).norm(dim=-1)
+    if len(d) < 2:
+        return 0.0
+    q = torch.quantile(d, torch.tensor([0.25, 0.5, 0.75], dtype=d.dtype))
+    return float((q[2] - q[0]) / q[1].clamp(min=1e-12))
+
+
 def photo_path_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60,
                        smoothing: float = PHOTO_PATH_SMOOTHING) -> Cameras:
-    """A path along the reference cameras' own viewpoints, for captures that do not surround their object (a facade,
-    a photo collection): an orbit at their mean distance shows the scene from where no photograph stood, and the
+    """A path along the reference cameras' own viewpoints, for photo collections taken from near and far that do not
+    surround their object: an orbit at their mean distance shows the scene from where no photograph stood, and the
     object region's box with what fills it shows there (the Sacre Coeur as a cube of sky fog). The cameras are taken
     in order of azimuth about ``center``, there and back (eased at the ends, as :func:`orbit_azimuths`); each frame's
     position, viewing direction and field of view (focal length over image diagonal) are the means of the cameras'
@@ -121,9 +136,10 @@ def photo_path_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frame
 def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60) -> Cameras:
     """Cameras around ``center`` (about +z) at the reference cameras' mean distance and elevation, with the
     intrinsics of the reference camera of the median field of view (:func:`typical_camera`): a full circle, or the
-    arc the reference cameras cover (:func:`orbit_azimuths`). Where that arc is under :data:`AROUND_ARC`, the path
-    along the photographs' viewpoints instead (:func:`photo_path_cameras`)."""
-    if len(reference.reshape(-1)) >= 3 and camera_arc(reference, center) < AROUND_ARC:
+    arc the reference cameras cover (:func:`orbit_azimuths`). Where that arc is under :data:`AROUND_ARC` and the
+    cameras' distances spread more than :data:`PHOTO_PATH_SPREAD`, the path along their viewpoints instead
+    (:func:`photo_path_cameras`)."""
+    if len(reference.reshape(-1)) >= 3 and camera_arc(reference, center) < AROUND_ARC and distance_spread(reference, center) > PHOTO_PATH_SPREAD:
         return photo_path_cameras(reference, center, num_frames)
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())

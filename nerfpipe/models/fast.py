@@ -331,8 +331,8 @@ objects photographed from around them, not facades. 21 of colmap_mouse's photogr
 training images, 3 held out), 0 / 0.01: 24.85 / 24.77 dB after 300 steps and 25.01 / 25.07 after 600 side by side,
 the occupied share 0.47 / 0.26; ``nerfpipe run --time-budget 180``: 25.02 / 25.04 dB (489 / 559 iterations), mesh
 98.4 % / 98.6 % of the points within 1 %, free-space violation 0.011 / 0.0095, and the fog slabs along the box's
-walls in the orbit's depth gone. The Sceaux castle's photographs cover 63°, the Sacre Coeur's 43°. The same arc as the
-orbit's rule (:data:`nerfpipe.data.orbit.AROUND_ARC`: below it, the path passes along the photographs)."""
+walls in the orbit's depth gone. The Sceaux castle's photographs cover 63°, the Sacre Coeur's 43°. The arc of
+:data:`nerfpipe.data.orbit.AROUND_ARC`, which the novel-view path's rule shares."""
 
 
 def object_support(info: SceneInfo) -> "tuple[float, float, float, float] | None":
