@@ -83,6 +83,7 @@ def test_render_sequence_supersamples_every_frame_and_records_it():
     views, info = render_sequence(model, scene, cfg, background_colors("black", 1)[0], "cpu")
     cams = resize_cameras(path_cameras(scene, cfg, 3), 20, 14)
     assert info["supersample"] == 2 and len(views) == 3
+    assert info["along_photographs"] is False  # cameras all round: the orbit (the path it took is recorded)
     for i, view in enumerate(views):
         torch.testing.assert_close(view.rgb, render_cameras(model, cams[i : i + 1], supersample=2)[0].rgb)
         assert not torch.allclose(view.rgb, render_cameras(model, cams[i : i + 1])[0].rgb, atol=0.02)

@@ -1,4 +1,5 @@
-"""Camera paths for novel views: a generated orbit around the scene centre, upright, looking at it.
+"""Camera paths for novel views: a generated orbit around the scene centre, upright, looking at it (or, for a photo
+collection taken from near and far, a path along the photographs' own viewpoints).
 
 World up is +z (the Blender/CS180 frame is z-up, and :mod:`nerfpipe.data.normalize` turns real captures
 so the mean camera up is +z). Cameras use the OpenCV axes of :mod:`nerfpipe.data.cameras`.
@@ -106,6 +107,13 @@ def distance_spread(cameras: Cameras, center: Float[Tensor, "3"]) -> float:
     return float((q[2] - q[0]) / q[1].clamp(min=1e-12))
 
 
+def along_photographs(reference: Cameras, center: Float[Tensor, "3"]) -> bool:
+    """Whether :func:`orbit_cameras` passes along the reference cameras' viewpoints (:func:`photo_path_cameras`): three
+    or more that cover less than :data:`AROUND_ARC` about ``center`` from distances that spread more than
+    :data:`PHOTO_PATH_SPREAD`."""
+    return len(reference.reshape(-1)) >= 3 and camera_arc(reference, center) < AROUND_ARC and distance_spread(reference, center) > PHOTO_PATH_SPREAD
+
+
 def photo_path_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: int = 60,
                        smoothing: float = PHOTO_PATH_SMOOTHING) -> Cameras:
     """A path along the reference cameras' own viewpoints, for photo collections taken from near and far that do not
@@ -139,7 +147,7 @@ def orbit_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frames: in
     arc the reference cameras cover (:func:`orbit_azimuths`). Where that arc is under :data:`AROUND_ARC` and the
     cameras' distances spread more than :data:`PHOTO_PATH_SPREAD`, the path along their viewpoints instead
     (:func:`photo_path_cameras`)."""
-    if len(reference.reshape(-1)) >= 3 and camera_arc(reference, center) < AROUND_ARC and distance_spread(reference, center) > PHOTO_PATH_SPREAD:
+    if along_photographs(reference, center):
         return photo_path_cameras(reference, center, num_frames)
     offsets = reference.centers.reshape(-1, 3).double() - center.double()
     radius = float(offsets.norm(dim=-1).mean())

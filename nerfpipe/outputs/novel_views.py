@@ -30,7 +30,8 @@ class RenderConfig:
     """What to render: camera path, frames, size, background, depth (``nerfpipe render`` and the ``render`` stage)."""
 
     path: str = "orbit"
-    """``orbit`` around the scene centre, ``test`` (the dataset's test poses; orbit when it has none) or a
+    """``orbit`` around the scene centre (along the photographs' own viewpoints for a collection taken from near and far,
+    :func:`nerfpipe.data.orbit.along_photographs`), ``test`` (the dataset's test poses; orbit when it has none) or a
     camera_path.json file (nerfstudio's format, as ``nerfpipe view`` saves it), played at the file's fps and size."""
     frames: int = 60
     """Number of frames (orbit and test; a file gives its own)."""
@@ -168,6 +169,10 @@ def render_sequence(model, scene, config: RenderConfig, bg, device: str, time_le
     info = {"path": config.path, "frames": len(views), "width": int(cams.width[0]), "height": int(cams.height[0]), "supersample": config.supersample,
             "background": [float(v) for v in bg.cpu()], "budget_plan": {"frames": plan.frames, "scale": plan.scale,
             "estimated_seconds": plan.estimated_seconds, "seconds": time.perf_counter() - start}}  # fmt: skip
+    if config.path == "orbit" and camera_file is None:
+        from nerfpipe.data.orbit import along_photographs
+
+        info["along_photographs"] = along_photographs(scene.split_cameras("train"), scene.aabb.float().mean(0))
     return views, info
 
 
