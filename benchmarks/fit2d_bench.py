@@ -87,7 +87,7 @@ def main(
         rows.append(_summary(name, results[name], target_db, budget_seconds))
     load = tuple(round(v, 2) for v in load_before + os.getloadavg())
     values = int(target.pixels.size)
-    report.save_psnr_plot(results, out / "psnr_vs_seconds.png", title=f"{target.source}: course vs fast")
+    report.save_psnr_plot(results, out / "psnr_vs_seconds.png", title=f"{target.source}: {' vs '.join(reversed(list(results)))}")
     report.write_json(out / "fit2d_bench.json", {"image": target.source, "image_values": values,
                                                 "rows": rows, "loadavg_before_after": load,
                                                 "machine": fit2d_run.machine()})
