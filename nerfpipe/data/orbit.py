@@ -70,7 +70,18 @@ def orbit_azimuths(azimuths: Float[Tensor, "num_cameras"], num_frames: int, gap:
     start, span = covered_arc(azimuths, gap)
     if span >= 2 * math.pi:
         return start + frames * (2 * math.pi / num_frames)
-    return start + span * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))
+    return start + span * there_and_back(num_frames)
+
+
+def there_and_back(num_frames: int) -> Float[Tensor, "num_frames"]:
+    """Each frame's place in ``[0, 1]`` on a path swept there and back, eased at its ends so the loop is smooth."""
+    return 0.5 - 0.5 * torch.cos(torch.arange(num_frames, dtype=torch.float64) * (2 * math.pi / num_frames))
+
+
+def field_of_view(cameras: Cameras) -> Float[Tensor, "num_cameras"]:
+    """Each camera's mean focal length over its image diagonal (float64, flat)."""
+    flat = cameras.reshape(-1)
+    return (flat.fx.double() + flat.fy.double()).reshape(-1) / torch.hypot(flat.width.double(), flat.height.double()).reshape(-1)
 
 
 def typical_camera(reference: Cameras) -> Cameras:
@@ -78,9 +89,7 @@ def typical_camera(reference: Cameras) -> Cameras:
     size, principal point and focal lengths kept): a path's frames framed as a typical photograph, not as whichever
     came first (colmap_mouse's first photograph is its widest, focal length 0.47 of its longer side against a median
     of 0.72: through it the mouse showed at two thirds of its size in the photographs)."""
-    flat = reference.reshape(-1)
-    zoom = (flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())
-    return flat[int(zoom.median(0).indices)]
+    return reference.reshape(-1)[int(field_of_view(reference).median(0).indices)]
 
 
 AROUND_ARC = math.radians(120)
@@ -127,13 +136,12 @@ def photo_path_cameras(reference: Cameras, center: Float[Tensor, "3"], num_frame
     order = torch.argsort(azimuths(flat, center))
     flat = flat[order]
     n = len(flat)
-    frames = torch.arange(num_frames, dtype=torch.float64)
-    place = (n - 1) * (0.5 - 0.5 * torch.cos(frames * (2 * math.pi / num_frames)))  # [F] in [0, n - 1], there and back
+    place = (n - 1) * there_and_back(num_frames)  # [F] in [0, n - 1]
     w = torch.exp(-0.5 * ((place[:, None] - torch.arange(n, dtype=torch.float64)) / max(smoothing, 1e-6)) ** 2)
     w = w / w.sum(-1, keepdim=True)  # [F, n]
     eye = w @ flat.centers.double()
     fwd = torch.nn.functional.normalize(w @ flat.forward.double(), dim=-1)
-    zoom = w @ ((flat.fx.double() + flat.fy.double()) / torch.hypot(flat.width.double(), flat.height.double())).reshape(-1)
+    zoom = w @ field_of_view(flat)
     m = look_at(eye, eye + fwd, torch.tensor(WORLD_UP, dtype=torch.float64))
     r = typical_camera(reference)
     focal = zoom * math.hypot(float(r.width), float(r.height)) / 2  # the mean of fx and fy, as zoom is
@@ -173,5 +181,9 @@ def path_cameras(scene, kind: str = "test", num_frames: int = 60) -> Cameras:
         cams = scene.split_cameras("test")
         idx = torch.linspace(0, len(cams) - 1, min(num_frames, len(cams))).round().long()
         return cams[idx]
-    center = scene.aabb.float().mean(0)
-    return orbit_cameras(scene.split_cameras("train"), center, num_frames)
+    return orbit_cameras(*orbit_reference(scene), num_frames)
+
+
+def orbit_reference(scene) -> "tuple[Cameras, Float[Tensor, '3']]":
+    """The cameras and centre a scene's orbit is made from: its training cameras and its box's centre."""
+    return scene.split_cameras("train"), scene.aabb.float().mean(0)

@@ -170,9 +170,9 @@ def render_sequence(model, scene, config: RenderConfig, bg, device: str, time_le
             "background": [float(v) for v in bg.cpu()], "budget_plan": {"frames": plan.frames, "scale": plan.scale,
             "estimated_seconds": plan.estimated_seconds, "seconds": time.perf_counter() - start}}  # fmt: skip
     if config.path == "orbit" and camera_file is None:
-        from nerfpipe.data.orbit import along_photographs
+        from nerfpipe.data.orbit import along_photographs, orbit_reference
 
-        info["along_photographs"] = along_photographs(scene.split_cameras("train"), scene.aabb.float().mean(0))
+        info["along_photographs"] = along_photographs(*orbit_reference(scene))
     return views, info
 
 
