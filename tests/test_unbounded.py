@@ -817,6 +817,24 @@ def test_a_run_written_before_the_field_in_front_of_the_box_loads_as_it_trained(
     assert not _model(num_images=FRONT_MIN_IMAGES, behind=BackgroundFieldConfig(front=False)).front
 
 
+def test_a_run_written_before_the_rule_of_20_photographs_keeps_its_rule():
+    """A stored model config without ``front_min_images`` (a run written before session 54, when the field in front
+    of the box was read from 32 training images on) loads with that rule: a capture of 20 training images renders
+    without it, as it trained; a new config reads it from :data:`FRONT_MIN_IMAGES` on."""
+    from nerfpipe.models.fast import FRONT_MIN_IMAGES_BEFORE
+    from nerfpipe.training.runs import _options_since
+    from nerfpipe.util.configs import from_dict, to_dict
+
+    assert FRONT_MIN_IMAGES < 20 < FRONT_MIN_IMAGES_BEFORE
+    stored = to_dict(FastConfig())
+    del stored["front_min_images"]
+    _options_since(FastConfig, stored)
+    old = from_dict(FastConfig, stored)
+    assert old.front_min_images == FRONT_MIN_IMAGES_BEFORE
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=20, pixels_per_image=100, unbounded=True, focal_spread=1.0)
+    assert not old.setup(info).front and FastConfig().setup(info).front
+
+
 def test_the_field_in_front_of_the_box_is_read_where_a_capture_has_many_photographs():
     """``behind.front`` None: on from ``FRONT_MIN_IMAGES`` training images (with fewer its haze costs held-out PSNR),
     never without the field behind the box; given, as given."""

@@ -79,8 +79,8 @@ class BackgroundFieldConfig:
     """Rays that cross the box also read the field in front of it (:meth:`BackgroundField.front`): at the
     intervals of a ray that misses the box, cut where the ray enters it, composited with what lies behind the box
     (``FastModel._in_front``). Without it the field's haze between the cameras and the table was seen only around
-    the box, whose outline showed on the table in every orbit. Default: from
-    ``nerfpipe.models.fast.FRONT_MIN_IMAGES`` training images on (with fewer it costs held-out PSNR)."""
+    the box, whose outline showed on the table in every orbit. Default: from the fast model's ``front_min_images``
+    training images on (``nerfpipe.models.fast.FRONT_MIN_IMAGES``; with fewer it costs held-out PSNR)."""
     init_density: float = 0.01
     """Density everywhere at the start, per unit of length in contracted space (the whole shell from the box
     to infinity is one unit deep along a ray from the centre): low, so the field starts transparent and

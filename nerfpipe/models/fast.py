@@ -239,17 +239,24 @@ APPEARANCE_FIT_LR = 0.05
 
 APPEARANCE_FIT_FINAL_LR = 0.1
 
-FRONT_MIN_IMAGES = 32
+FRONT_MIN_IMAGES = 16
 """Training images from which rays that cross the box also read the field behind the box in front of it
-(``BackgroundFieldConfig.front`` None: :meth:`FastModel._in_front`). With fewer, the haze a camera's neighbours leave
-there is a poor guess for the rays that cross the box, and the held-out views lose: side by side (the average scored,
-one ray per pixel) a 23-photo posed cut of colmap_mouse (20 training images, 3 views) 24.58 → 24.49 dB after 600 steps,
-10 photos kept from a folded reconstruction of another 23-photo folder (8, 2 views) 19.39 → 18.86 after 1,000, photos_sacre_coeur (8,
-2 views) mean code 12.59 → 12.52 and appearance fitted 15.72 → 15.43 after 700; photos_sceaux_castle (9) 14.85 →
-14.90. With more, it neither gains nor costs and the box's outline leaves the renders: colmap_mouse (49) 24.78 → 24.79
-after 900, the room scene (49) 30.45 → 30.44 after 600, ngp_fox (58) 27.95 → 27.96 after 600. Read but not trained
-by the rays that cross the box (its gradients stopped there): colmap_mouse 24.83, the room 30.30, ngp_fox 27.96,
-the 23-photo cut 24.47, the folded 10 19.10: not kept."""
+(``BackgroundFieldConfig.front`` None, ``FastConfig.front_min_images``: :meth:`FastModel._in_front`). Without it the
+field's haze between the cameras and the table lies only around the box, and the box's slab outline shows on the table
+in every orbit. With 8 or 9 training images its haze is a poor guess for the rays that cross the box and the held-out
+views lose (side by side, the average scored, one ray per pixel): 10 photos kept from a folded reconstruction of
+another 23-photo folder (8 training images, 2 views) 19.39 -> 18.86 dB after 1,000 steps, photos_sacre_coeur (8, 2
+views) appearance fitted 15.72 -> 15.43 after 700, photos_sceaux_castle (9) 14.85 -> 14.90. From about 20 on it costs
+a few hundredths of a dB and removes the outline (session 54, after 900 steps, averaged): a posed 23-photo cut of
+colmap_mouse (20 training images, 3 views), seeds 0-3, 24.81 / 24.65 / 24.83 / 24.56 -> 24.59 / 24.65 / 24.83 /
+24.46 (colour fitted +0.07 to +0.46), 23 of ngp_fox's photos through SfM (20, 3 views) 25.97 -> 25.92, a synthetic
+room of 26 views (23, 3 views; seeds 0 / 1, after 600) 29.77 / 28.23 -> 29.69 / 28.28: 0.06 dB on average; with 49 to
+58 it neither gains nor costs: colmap_mouse 24.78 -> 24.79 after 900, the room scene 30.45 -> 30.44 after 600,
+ngp_fox 27.95 -> 27.96 after 600 (session 48, when the rule was 32). Read but not trained by the rays that cross the
+box (its gradients stopped there): colmap_mouse 24.83, the room 30.30, ngp_fox 27.96, the 23-photo cut 24.47, the
+folded 10 19.10: not kept."""
+FRONT_MIN_IMAGES_BEFORE = 32
+""":data:`FRONT_MIN_IMAGES` of runs written before session 54 (``FastConfig.OPTIONS_SINCE``)."""
 BEHIND_SEEN = 1e-3
 """Transmittance of the box below which a ray's colour behind the box is not computed (it changes the
 pixel by less than a thousandth of the colour range)."""
@@ -346,7 +353,8 @@ def object_support(info: SceneInfo) -> "tuple[float, float, float, float] | None
 class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
 
-    OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False, "log2_fine_hashmap_size": 0}
+    OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False, "log2_fine_hashmap_size": 0,
+                                                   "front_min_images": FRONT_MIN_IMAGES_BEFORE}
     """Options added since runs were first written (dotted names), with the value such a run was trained as: a run's
     ``config.json`` that lacks one renders, meshes and scores as it trained (:func:`nerfpipe.training.runs.load_run`)."""
 
@@ -491,6 +499,9 @@ class FastConfig:
     sky with fog."""
     behind: BackgroundFieldConfig = field(default_factory=BackgroundFieldConfig)
     """The field behind the box (when ``background_field``)."""
+    front_min_images: int = FRONT_MIN_IMAGES
+    """Training images from which ``behind.front`` None reads the field behind the box in front of it too, for the
+    rays that cross the box (:data:`FRONT_MIN_IMAGES`)."""
     support_texture: "bool | None" = None
     """Render the plane the object stands on (``SceneInfo.support_plane``, found in the sparse points) as a texture with
     an opacity (:mod:`nerfpipe.fields.plane`), in front of the field behind the box, from ``behind_from`` on. Default:
@@ -711,7 +722,7 @@ class FastModel(Model):
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
         self.background = self._background_head(code_dim) if learn_bg else None
         self.behind = BackgroundField(cfg.behind, aabb, code_dim) if use_behind else None
-        front = info.num_images >= FRONT_MIN_IMAGES if cfg.behind.front is None else cfg.behind.front
+        front = info.num_images >= cfg.front_min_images if cfg.behind.front is None else cfg.behind.front
         self.front = use_behind and front
         """Rays that cross the box read the field behind it in front of the box too (:meth:`_in_front`)."""
         around = use_behind and info.arc >= SPARSITY_MIN_ARC  # an object photographed from around it, its surroundings modelled
