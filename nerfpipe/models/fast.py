@@ -251,7 +251,7 @@ a few hundredths of a dB and removes the outline (session 54, after 900 steps, a
 colmap_mouse (20 training images, 3 views), seeds 0-3, 24.81 / 24.65 / 24.83 / 24.56 -> 24.59 / 24.65 / 24.83 /
 24.46 (colour fitted +0.07 to +0.46), 23 of ngp_fox's photos through SfM (20, 3 views) 25.97 -> 25.92, a synthetic
 room of 26 views (23, 3 views; seeds 0 / 1, after 600) 29.77 / 28.23 -> 29.69 / 28.28: 0.06 dB on average (a 14-photo
-cut, 12 training images, seeds 0 / 1 after 600: 23.04 / 23.08 -> 23.04 / 22.95, untried in between); with 49 to
+cut, 12 training images, seeds 0 / 1 after 600: 23.04 / 23.08 -> 23.04 / 22.95; 13 to 15 untried); with 49 to
 58 it neither gains nor costs: colmap_mouse 24.78 -> 24.79 after 900, the room scene 30.45 -> 30.44 after 600,
 ngp_fox 27.95 -> 27.96 after 600 (session 48, when the rule was 32). Read but not trained by the rays that cross the
 box (its gradients stopped there): colmap_mouse 24.83, the room 30.30, ngp_fox 27.96, the 23-photo cut 24.47, the
