@@ -134,6 +134,22 @@ def test_hashed_corners_match_the_one_vertex_reference():
     assert torch.autograd.gradcheck(grid_gather, (table, idx[:6], w[:6].clone().requires_grad_()))
 
 
+@pytest.mark.parametrize("rows", [2**4, 2**20, 2**31])
+def test_hashed_rows_per_axis_in_32_bits_equal_the_64_bit_broadcast(device, rows):
+    """The CPU's route to the hashed rows (per-axis products in wrapping 32-bit integers) gives the 64-bit broadcast's
+    rows bit for bit, where the products overflow 32 bits too (coordinates up to 8,191: their products with the
+    primes need 45 bits), and the one-vertex reference's on a sample."""
+    from nerfpipe.fields.grid import hashed_rows, hashed_rows_per_axis
+
+    g = torch.Generator().manual_seed(0)
+    lo = torch.cat([torch.randint(0, 8192, (2, 500, 3), generator=g), torch.tensor([[[0, 0, 0], [8191, 8191, 8191]]] * 2)], 1).to(device)
+    fast = hashed_rows_per_axis(lo.float(), rows)
+    assert fast.dtype == torch.long and torch.equal(fast, hashed_rows(lo, rows)) and int(fast.max()) < rows
+    corners = [(di, dj, dk) for di in (0, 1) for dj in (0, 1) for dk in (0, 1)]
+    for (i, j, k), got in zip(lo[1, -20:].tolist(), fast[1, -20:].tolist()):
+        assert got == [hashed_row_reference(i + di, j + dj, k + dk, rows) for di, dj, dk in corners]
+
+
 def test_corners_of_several_levels_at_once_equal_each_levels_own(device):
     """The batched corners (one pass for the dense levels, one for the hashed ones) are each level's
     :func:`trilinear_corners`, bit for bit, and in fewer tensor operations."""
