@@ -45,6 +45,8 @@ BLOCK = 4
 
 # hashing primes per axis (instant-ngp's; the last axis gets 1 so that its neighbours share cache lines)
 HASH_PRIMES = (2654435761, 805459861, 1)
+_HASH_PRIMES_INT32 = tuple(p - (1 << 32) if p >= 1 << 31 else p for p in HASH_PRIMES)
+"""The primes' low 32 bits as int32 values (:func:`hashed_rows_per_axis`)."""
 
 
 @functools.lru_cache(maxsize=256)
@@ -138,7 +140,7 @@ def hashed_rows_per_axis(lo: "Tensor", rows: int) -> Int[Tensor, "*bs 8"]:
     if rows > 1 << 31:
         return hashed_rows(lo.long(), rows)
     lo = lo.movedim(-1, 0).int()
-    p0, p1, p2 = (p - (1 << 32) if p >= 1 << 31 else p for p in HASH_PRIMES)  # the same low 32 bits, as int32
+    p0, p1, p2 = _HASH_PRIMES_INT32
     a0, b0, c0 = lo[0] * p0, lo[1] * p1, lo[2] if p2 == 1 else lo[2] * p2
     a1, b1, c1 = a0 + p0, b0 + p1, c0 + p2
     xy = torch.stack([a0 ^ b0, a0 ^ b1, a1 ^ b0, a1 ^ b1], dim=-1)  # (di, dj) in the order of _CORNERS
