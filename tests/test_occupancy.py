@@ -178,6 +178,44 @@ def test_two_level_skipping_in_rounds_keeps_the_same_samples():
     assert torch.equal(sigma, ref_sigma)
 
 
+@pytest.mark.parametrize("resolution", [8, 255])
+def test_occupied_along_rays_matches_a_cell_looked_up_by_hand(resolution, device):
+    """Points in, outside and on the far side of the box, and NaN ones: each read as its cell by hand (outside and NaN:
+    empty); then after the mask is edited in place and after a refresh (the bordered copy follows both). 255 cells
+    per axis: the bordered mask's rows exceed what float32 holds exactly."""
+    box = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 2.0, 0.7]])
+    grid = OccupancyGridConfig(resolution=resolution).setup(box).to(device)
+    gen = torch.Generator().manual_seed(resolution)
+    o, d = rays(64, seed=resolution)
+    t = torch.rand(64, 40, generator=gen) * 7.0
+    t[0, :3] = float("nan")
+
+    def by_hand():
+        pts = (o[:, None, :] + t[..., None] * d[:, None, :]).double()
+        u = (pts - box[0].double()) / (box[1] - box[0]).double() * resolution
+        ijk = u.floor().nan_to_num(-1.0).long()
+        inside = ((ijk >= 0) & (ijk < resolution)).all(-1)
+        rows = ((ijk[..., 0] * resolution + ijk[..., 1]) * resolution + ijk[..., 2]).clamp(0, resolution**3 - 1)
+        return grid.binary.cpu()[rows] & inside
+
+    def got():
+        return grid.occupied_along(o.to(device), d.to(device), t.to(device)).cpu()
+
+    for edit in ("random", "in place", "refresh"):
+        if edit == "random":
+            grid.binary.copy_((torch.rand(resolution**3, generator=gen) < 0.3).to(device))
+        elif edit == "in place":
+            grid.binary[: resolution**3 // 2] = True
+        else:
+            grid.update(lambda p: (p[:, 0] > 0.2).float() * 1e3, step_size=0.01, full=True)
+        ref = by_hand()
+        assert 30 < ref.sum() < ref.numel() - 30 and not ref[0, :3].any()
+        # a point within float rounding of a cell boundary may fall in either cell
+        assert (got() != ref).float().mean() < 1e-3, edit
+        pts = (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3)
+        assert (grid.occupied(pts.to(device)).cpu().view(64, 40) != ref).float().mean() < 1e-3, edit
+
+
 def _occupied_aabb_reference(grid) -> torch.Tensor:
     """The box of the occupied cells, from their list (the whole box when none is)."""
     r = grid.cfg.resolution
