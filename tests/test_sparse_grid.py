@@ -30,13 +30,14 @@ def random_blocks(res, seed, share=0.6):
     return torch.rand(blocks_per_axis(res), generator=g) < share
 
 
-def test_block_rows_match_the_one_vertex_reference():
+@pytest.mark.parametrize("table_rows", [None, 24 * BLOCK**3])  # not known (float64 sums), known (float32 on the CPU)
+def test_block_rows_match_the_one_vertex_reference(table_rows):
     nb = blocks_per_axis(RES)
     g = torch.Generator().manual_seed(1)
     block_map = torch.randperm(24, generator=g)[: nb[0] * nb[1] * nb[2]]
     block_map[torch.rand(block_map.shape, generator=g) < 0.3] = -1
     lo = torch.stack([torch.randint(0, n - 1, (60,), generator=g) for n in RES], -1)
-    rows, stored = block_rows(lo.float(), block_map, nb)
+    rows, stored = block_rows(lo.float(), block_map, nb, table_rows)
     ref = [
         [block_row_reference(i + di, j + dj, k + dk, block_map.tolist(), nb) for di, dj, dk in itertools.product((0, 1), repeat=3)]
         for i, j, k in lo.tolist()
@@ -299,9 +300,10 @@ def test_block_rows_stay_exact_when_float32_products_may_lose_precision(monkeypa
     small = (3, 2, 3)
     lo = torch.stack([torch.randint(0, 4 * n - 1, (50,), generator=g) for n in small], -1).float()
     block_map = torch.arange(18) * BLOCK**3
-    exact, _ = block_rows(lo, block_map, small)
+    exact, _ = block_rows(lo, block_map, small, rows=18 * BLOCK**3)  # float32
+    assert torch.equal(exact, block_rows(lo, block_map, small)[0])  # the table's rows not known: float64
     monkeypatch.setattr(grid, "_exact_float32", lambda device: False)
-    assert torch.equal(block_rows(lo, block_map, small)[0], exact)
+    assert torch.equal(block_rows(lo, block_map, small, rows=18 * BLOCK**3)[0], exact)
 
 
 def test_a_checkpoint_taken_between_the_tightening_and_the_next_step_makes_its_levels_sparse_when_resumed():
