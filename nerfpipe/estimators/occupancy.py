@@ -157,9 +157,10 @@ class OccupancyGrid(nn.Module):
     def _cell_ijk(self, points: Float[Tensor, "*bs 3"]) -> "tuple[Int[Tensor, '*bs 3'], Bool[Tensor, '*bs']]":
         """Cell of each point (points outside the box clamped to the nearest cell) and whether it is inside."""
         r = self.cfg.resolution
-        x01 = (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
-        inside = ((x01 >= 0) & (x01 <= 1)).all(dim=-1)
-        return (x01 * r).long().clamp(0, r - 1), inside
+        scale, offset = self._bordered_units()
+        u = torch.addcmul(offset - 1.0, points, scale)  # in cells of the box
+        inside = ((u >= 0) & (u <= r)).all(dim=-1)
+        return u.long().clamp(0, r - 1), inside
 
     def occupied(self, points: Float[Tensor, "num_points 3"]) -> Bool[Tensor, "num_points"]:
         """Whether each point lies in an occupied cell (points outside the box are empty)."""
