@@ -45,12 +45,14 @@ def test_trilinear_matches_loop_reference(dtype, tol, device):
     torch.testing.assert_close(got, trilinear_loop(table, RES, x), **tol(dtype))
 
 
-def test_gather_gradients_match_dense_products(device, tol):
-    """The gather's backward (one ``index_add_``) against autograd through plain indexing, values and gradients."""
+@pytest.mark.parametrize("channels", [1, 3])
+def test_gather_gradients_match_dense_products(device, tol, channels):
+    """The gather's backward (one ``index_add_``; a one-channel table's as a vector) against autograd through plain
+    indexing, values and gradients."""
     g = torch.Generator().manual_seed(5)
-    table = torch.randn(RES[0] * RES[1] * RES[2], 3, generator=g).to(device)
+    table = torch.randn(RES[0] * RES[1] * RES[2], channels, generator=g).to(device)
     idx, w = trilinear_corners(points(40, torch.float32).to(device), RES)
-    coef = torch.randn(40, 3, generator=g).to(device)
+    coef = torch.randn(40, channels, generator=g).to(device)
     t1, w1 = table.clone().requires_grad_(), w.clone().requires_grad_()
     (grid_gather(t1, idx, w1) * coef).sum().backward()
     t2, w2 = table.clone().requires_grad_(), w.clone().requires_grad_()
@@ -67,6 +69,29 @@ def test_both_weight_gradient_routes_agree(device, tol, channels):
     rows, v = torch.randn(50, 8, channels, generator=g).to(device), torch.randn(50, channels, generator=g).to(device)
     for batched in (True, False):
         torch.testing.assert_close(row_dot(rows, v, batched), (rows * v[:, None, :]).sum(-1), **tol(torch.float32))
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+def test_both_table_gradient_routes_agree(device, tol, channels):
+    """The ``scatter_add_`` per channel (the CPU's route) and ``index_add_`` (elsewhere) of the gather's backward
+    into the table, on the same device, with repeated rows and int32 / int64 indices: the same values, bit for bit on
+    the CPU (both add in the corners' order; CUDA's atomic adds have no fixed order)."""
+    from nerfpipe.functional.gather import table_grad
+
+    g = torch.Generator().manual_seed(8)
+    for dtype in (torch.float32, torch.float64):
+        table = torch.randn(40, channels, generator=g, dtype=dtype).to(device)
+        idx = torch.randint(0, 40, (300, 8), generator=g).to(device)
+        idx[:5] = 7  # a row many corners share
+        w, grad_out = torch.rand(300, 8, generator=g, dtype=dtype).to(device), torch.randn(300, channels, generator=g, dtype=dtype).to(device)
+        ref = torch.zeros_like(table).index_put_((idx.reshape(-1),), (w[:, :, None] * grad_out[:, None, :]).reshape(-1, channels), accumulate=True)
+        for index in (idx, idx.int()):
+            scattered, added = (table_grad(table, index, w, grad_out, per_channel=c) for c in (True, False))
+            assert scattered.dtype == added.dtype == dtype and scattered.shape == table.shape
+            if device.type == "cpu":
+                assert torch.equal(scattered, added)
+            torch.testing.assert_close(scattered, ref, **tol(dtype))
+            torch.testing.assert_close(added, ref, **tol(dtype))
 
 
 @pytest.mark.parametrize("corners", [4, 8])

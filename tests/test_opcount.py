@@ -87,6 +87,11 @@ the occupied cells' large pieces (session 21) this scene's rays take one more ro
 Since the fast model draws 0.3 of its rays from an error map on bounded scenes (session 43; the draw and the update
 ~45 ops, no syncs): 725 in fixed shapes, 1,258 with rounds. Since the CPU's gathers are ``embedding_bag``'s weighted
 sums (session 52): 707 / 1,250. Issue 13's goal is 300: it takes fused kernels."""
+CPU_TABLE_GRAD_OPS = 40
+"""More ops allowed on the CPU: there the gather's backward into a table adds each channel apart
+(:func:`nerfpipe.functional.gather.table_grad`, session 57: 1.6-3x faster than one ``index_add_`` of rows; the 800²
+stand-in's step 12.7 % faster), 11 more ops per feature level and step: 1,287 -> 1,320 with rounds, 718 -> 751 in
+fixed shapes on this test's three levels. CUDA takes the one ``index_add_``: its budgets are unchanged."""
 MAX_SYNCS_PER_STEP = {"rounds": 9.0, "fixed_shapes": 2.0, "graph": 0.0}
 """Host syncs per steady step at most. With rounds: 73.9 at commit 9f82e41 (40.3 of them constant uploads); 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each
@@ -132,7 +137,7 @@ def test_steady_fast_training_step_stays_within_its_op_and_sync_budget(steady_co
     (device, mode), counts = steady_counts
     if mode == "fixed_shapes" and device == "cuda":
         assert counts.syncs <= 1.0, counts
-    assert counts.ops <= MAX_OPS_PER_STEP[mode], counts
+    assert counts.ops <= MAX_OPS_PER_STEP[mode] + (CPU_TABLE_GRAD_OPS if device == "cpu" else 0), counts
     assert counts.syncs <= MAX_SYNCS_PER_STEP[mode], counts
 
 
