@@ -79,7 +79,9 @@ def table_grad(
     if per_channel:
         rows, channels = table.shape
         flat = flat.long()
-        values = (grad_out.t()[:, :, None] * w.to(grad_out.dtype)).reshape(channels, -1)  # channel c's adds in row c
+        # channel c's adds in row c, laid out as the product is computed (a transposed grad_out would make the product
+        # come out corner-major, and its reshape a copy)
+        values = (grad_out.t().contiguous()[:, :, None] * w.to(grad_out.dtype)).view(channels, -1)
         if channels == 1:
             return table.new_zeros(rows).scatter_add_(0, flat, values[0]).view(rows, 1)
         return torch.stack([table.new_zeros(rows).scatter_add_(0, flat, v) for v in values], dim=1)
