@@ -47,7 +47,7 @@ def test_trilinear_matches_loop_reference(dtype, tol, device):
 
 @pytest.mark.parametrize("channels", [1, 3])
 def test_gather_gradients_match_dense_products(device, tol, channels):
-    """The gather's backward (one ``index_add_``; a one-channel table's as a vector) against autograd through plain
+    """The gather's backward (per channel on the CPU, one ``index_add_`` elsewhere) against autograd through plain
     indexing, values and gradients."""
     g = torch.Generator().manual_seed(5)
     table = torch.randn(RES[0] * RES[1] * RES[2], channels, generator=g).to(device)
