@@ -20,26 +20,16 @@ def connected_components(mask: Bool[Tensor, "X Y Z"], check_every: int = 8) -> I
         >>> connected_components(m).flatten().tolist()
         [2, 2, 0, 4]
     """
-    labels = _initial_labels(mask)
-    while True:
-        before = labels
-        for _ in range(check_every):
-            labels = _spread(labels, mask)
-        if torch.equal(labels, before):
-            return labels.long()
-
-
-def _initial_labels(mask: Bool[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
-    """Each ``True`` cell's row number plus one (float32, exact below 2^24 cells), 0 elsewhere."""
     n = mask.numel()
     if n >= 1 << 24:
         raise ValueError(f"connected_components: {n} cells do not fit float32 labels (at most 2^24)")
-    return torch.where(mask.reshape(-1), torch.arange(1, n + 1, device=mask.device, dtype=torch.float32), 0.0).view(mask.shape)
-
-
-def _spread(labels: Float[Tensor, "X Y Z"], mask: Bool[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
-    """One round of label propagation: each masked cell takes the largest label of itself and its 26 neighbours."""
-    return torch.where(mask, _box_max(labels), 0.0)
+    labels = torch.where(mask.reshape(-1), torch.arange(1, n + 1, device=mask.device, dtype=torch.float32), 0.0).view(mask.shape)
+    while True:
+        before = labels
+        for _ in range(check_every):
+            labels = torch.where(mask, _box_max(labels), 0.0)  # each cell takes the largest label around it
+        if torch.equal(labels, before):
+            return labels.long()
 
 
 def _box_max(x: Float[Tensor, "X Y Z"]) -> Float[Tensor, "X Y Z"]:
