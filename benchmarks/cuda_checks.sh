@@ -8,7 +8,8 @@
 #
 # LEGO_NPZ: ../shared/data/lego_200x200/lego_200x200.npz (or a copy); BLENDER_LEGO_DIR: ../shared/data/blender_lego.
 # Run it where torch sees CUDA and nerfpipe is installed (pip install -e .); benchmarks/gpu_bundle.sh prepares both
-# for the device tool. EAGER=1 adds eager steps to the step profile and the blender bench with eager steps (--cuda-graph False).
+# for the device tool. LEGO800=DIR (the 800² stand-in, `python -m benchmarks.lego800`) adds issue 18's benches of the
+# compact field against the dense `large` one on it; ONLY800=1 runs those alone. EAGER=1 adds eager steps to the step profile and the blender bench with eager steps (--cuda-graph False).
 set -o pipefail
 LEGO=${1:?lego_200x200.npz}
 BLENDER=${2:?blender_lego folder}
@@ -24,11 +25,19 @@ bench() {  # name, timeout, then nerfpipe bench arguments
 }
 nvidia-smi -L
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
+if [ -n "${ONLY800:-}" ]; then SKIP=1; fi
+if [ -z "${SKIP:-}" ]; then
 echo "== every CUDA test (-m requires_cuda)"
-timeout 150 python3 -m pytest -q -n 8 -p no:cacheprovider -W ignore --tb=short -m requires_cuda tests 2>&1 | tail -25
+timeout 150 python3 -m pytest -q -n 8 -p no:cacheprovider -W ignore --tb=short -m requires_cuda tests >"$OUT/pytest.log" 2>&1
+tail -25 "$OUT/pytest.log"
 echo "== step profile: the CUDA graph with the rays cached on the device and generated per batch (EAGER=1: eager steps too)"
 timeout 100 python3 -m benchmarks.step_profile "$LEGO" --device cuda --rays 4096 16384 --modes graph ${EAGER:+fixed} --cache-rays True False \
     --warm 400 --steps 50 --profiled-steps 8 2>&1 | grep "^{"
 bench blender_graph 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5
 bench lego_graph_4096 100 "$LEGO" --presets fast-small --budgets 10 20 60 --eval-views 0 --rays-per-step 4096
 [ -n "${EAGER:-}" ] && bench blender_eager 120 "$BLENDER" --presets fast --budgets 10 30 60 --eval-views 5 --cuda-graph False
+fi
+if [ -n "${LEGO800:-}" ]; then
+    bench lego800_compact 150 "$LEGO800" --presets fast --budgets 10 30 60 --eval-views 4
+    bench lego800_dense 150 "$LEGO800" --presets fast-large:sparse_min_vertices=0 --budgets 10 30 60 --eval-views 4
+fi
