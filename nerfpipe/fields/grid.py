@@ -92,9 +92,21 @@ def trilinear_corners_levels(
 
 
 def dense_rows(lo: Float[Tensor, "levels num_points 3"], resolutions: "tuple[tuple[int, int, int], ...]") -> Int[Tensor, "levels num_points 8"]:
-    """Dense table rows of the eight vertices around each point, from :func:`trilinear_lo_levels`' lower corners."""
-    _, _, strides, offsets, _ = _level_constants(tuple(tuple(r) for r in resolutions), lo.dtype, lo.device)
+    """Dense table rows of the eight vertices around each point, from :func:`trilinear_lo_levels`' lower corners: in
+    32-bit integers on the CPU where the levels' vertices fit (its gather reads them so: :func:`~nerfpipe.functional.
+    gather.gather_rows_sum`), else 64-bit."""
+    key = tuple(tuple(r) for r in resolutions)
+    _, _, strides, offsets, _ = _level_constants(key, lo.dtype, lo.device)
+    if lo.device.type == "cpu" and max(rx * ry * rz for rx, ry, rz in key) < 2**31:
+        strides, offsets = _int32(strides), _int32(offsets)
+        return (lo.int() * strides).sum(-1, dtype=torch.int32)[..., None] + offsets
     return (lo.long() * strides).sum(-1)[..., None] + offsets
+
+
+@functools.lru_cache(maxsize=256)
+def _int32(constant: Tensor) -> Tensor:
+    """A cached constant of :func:`_level_constants` (itself cached, so the key lives) in 32-bit integers."""
+    return constant.int()
 
 
 def trilinear_lo_levels(
@@ -137,7 +149,9 @@ def hashed_rows_per_axis(lo: "Tensor", rows: int) -> Int[Tensor, "*bs 8"]:
     """:func:`hashed_rows`, bit for bit, by products of whole per-axis tensors in 32-bit integers: the CPU's route.
     The broadcast over strided ``[..., 3, 2]`` slices in 64 bits is slow there (150,000 points of 2 levels: 20 against
     7 ms). A row keeps only the low bits of the hash (``rows`` is a power of two up to 2^31), and products, sums and
-    XORs in 32 bits, wrapping, keep the low 32 bits of the 64-bit ones. ``lo``: whole numbers (floats or integers)."""
+    XORs in 32 bits, wrapping, keep the low 32 bits of the 64-bit ones. ``lo``: whole numbers (floats or integers).
+    The rows stay 32-bit integers where they fit (the CPU's gather reads them so: :func:`~nerfpipe.functional.gather.
+    gather_rows_sum`)."""
     if rows > 1 << 31:
         return hashed_rows(lo.long(), rows)
     lo = lo.movedim(-1, 0).int()
@@ -145,7 +159,7 @@ def hashed_rows_per_axis(lo: "Tensor", rows: int) -> Int[Tensor, "*bs 8"]:
     a0, b0, c0 = lo[0] * p0, lo[1] * p1, lo[2] if p2 == 1 else lo[2] * p2
     a1, b1, c1 = a0 + p0, b0 + p1, c0 + p2
     xy = torch.stack([a0 ^ b0, a0 ^ b1, a1 ^ b0, a1 ^ b1], dim=-1)  # (di, dj) in the order of _CORNERS
-    return (torch.stack([xy ^ c0[..., None], xy ^ c1[..., None]], dim=-1).flatten(-2) & (rows - 1)).long()
+    return torch.stack([xy ^ c0[..., None], xy ^ c1[..., None]], dim=-1).flatten(-2) & (rows - 1)
 
 
 def hashed_row_reference(i: int, j: int, k: int, rows: int) -> int:

@@ -39,7 +39,8 @@ def gather_rows_sum(
 ) -> Float[Tensor, "num_points C"]:
     """The gather's forward, not differentiable: ``embedding_bag``'s weighted sum on the CPU, else an
     ``index_select`` and :func:`corner_sum` (the reference route, and CUDA's: its graph-captured step was measured so)."""
-    if table.device.type == "cpu":
+    if table.device.type == "cpu":  # 32-bit rows: 1.8x faster there than 64-bit ones (session 58)
+        idx = idx.int() if idx.dtype != torch.int32 and table.shape[0] < 2**31 else idx
         return torch.nn.functional.embedding_bag(idx, table, per_sample_weights=w.to(table.dtype), mode="sum")
     n, k = idx.shape
     rows = table.index_select(0, idx.reshape(-1)).view(n, k, table.shape[1])
@@ -78,12 +79,12 @@ def table_grad(
     flat = idx.reshape(-1)
     if per_channel:
         rows, channels = table.shape
-        flat = flat.long()
-        # channel c's adds in row c, laid out as the product is computed (a transposed grad_out would make the product
-        # come out corner-major, and its reshape a copy)
-        values = (grad_out.t().contiguous()[:, :, None] * w.to(grad_out.dtype)).view(channels, -1)
+        flat, w = flat.long(), w.to(grad_out.dtype)
         if channels == 1:
-            return table.new_zeros(rows).scatter_add_(0, flat, values[0]).view(rows, 1)
+            return table.new_zeros(rows).scatter_add_(0, flat, (w * grad_out).view(-1)).view(rows, 1)
+        # channel c's adds in row c, written as the product is computed: into a buffer of that layout (a product of a
+        # contiguous transposed grad_out, the same values, took 2x as long: its transposing copy, session 58)
+        values = torch.mul(grad_out.t()[:, :, None], w, out=w.new_empty(channels, *w.shape)).view(channels, -1)
         return torch.stack([table.new_zeros(rows).scatter_add_(0, flat, v) for v in values], dim=1)
     contrib = (w[:, :, None] * grad_out[:, None, :]).reshape(-1, table.shape[1])
     return torch.zeros_like(table).index_add_(0, flat, contrib)
