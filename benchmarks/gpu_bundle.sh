@@ -8,6 +8,10 @@
 #
 # Then, through the device tool: run `bash .gpu/run.sh` with carry [".whl", ".gpu"] (about 4 minutes on an H200; `E2E= bash
 # .gpu/run.sh` leaves out the synthetic scene's chain).
+# LEGO800=DIR (the 800² stand-in, `python -m benchmarks.lego800 DIR`) also writes .l800: the stand-in with its held-out
+# views cut to the 4 the benches score (48 MB: it does not fit one call with .gpu) and .l800/run.sh, issue 18's benches
+# of the compact field against the dense one: a second call, `bash .l800/run.sh` with carry [".l800", ".whl"] (about
+# 3.5 minutes on an H200, session 58).
 # The machine's image has torch, triton, numpy, imageio, safetensors, rich, jaxtyping, matplotlib, scipy and
 # scikit-image, but not open3d, pymeshlab, pycolmap or imageio-ffmpeg: the chain of the synthetic scene runs there
 # without its render and mesh stages.
@@ -16,7 +20,7 @@ cd "$(dirname "$0")/.."
 DATA=${1:-../shared/data}
 PY=${PY:-.venv/bin/python}
 mkdir -p .git/info
-for d in /.whl/ /.gpu/; do grep -qxF "$d" .git/info/exclude 2>/dev/null || echo "$d" >>.git/info/exclude; done
+for d in /.whl/ /.gpu/ /.l800/; do grep -qxF "$d" .git/info/exclude 2>/dev/null || echo "$d" >>.git/info/exclude; done
 rm -rf .whl .gpu && mkdir -p .whl .gpu/lego_200x200 .gpu/blender_lego/test
 ver() { "$PY" -c "import importlib.metadata as m; print(m.version('$1'))"; }
 "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -59,4 +63,27 @@ timeout 90 nerfpipe run .gpu/synth --out /tmp/e2e --time-budget 60 --stages load
     --train.trainer.background white --train.model-options '{"background_field": false}' 2>&1 | tail -12 | tee "$OUT/e2e.log"
 echo "wall $((SECONDS - S0)) s"
 SH
+if [ -n "${LEGO800:-}" ]; then
+    rm -rf .l800 && mkdir -p .l800/lego800/val && cp -r "$LEGO800/train" "$LEGO800/transforms_train.json" .l800/lego800/
+    "$PY" - "$LEGO800" <<'PY'
+import json, shutil, sys
+src = sys.argv[1]
+for split in ("val", "test"):  # the benches score the first 4 held-out views (evaluation.eval_views)
+    doc = json.load(open(f"{src}/transforms_{split}.json"))
+    doc["frames"] = doc["frames"][:4]
+    for f in doc["frames"]:
+        name = f["file_path"].lstrip("./")
+        shutil.copy(f"{src}/{name}.png", f".l800/lego800/{name}.png")
+    json.dump(doc, open(f".l800/lego800/transforms_{split}.json", "w"), indent=1)
+PY
+    cat >.l800/run.sh <<'SH'
+#!/usr/bin/env bash
+# a second device call: issue 18's benches on the 800² stand-in (compact against large stored dense)
+cd "$(dirname "$0")/.." || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || { echo setup failed; exit 1; }
+export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH PYTHONUNBUFFERED=1
+ONLY800=1 LEGO800=.l800/lego800 bash benchmarks/cuda_checks.sh x x 2>&1 | tee "$OUT/l800.log"
+SH
+    du -sh .l800
+fi
 du -sh .whl .gpu
