@@ -52,15 +52,16 @@ _HASH_PRIMES_INT32 = tuple(p - (1 << 32) if p >= 1 << 31 else p for p in HASH_PR
 
 @functools.lru_cache(maxsize=256)
 def _level_constants(
-    resolutions: "tuple[tuple[int, int, int], ...]", dtype: torch.dtype, device: torch.device
+    resolutions: "tuple[tuple[int, int, int], ...]", dtype: torch.dtype, device: torch.device, index_dtype: torch.dtype = torch.long
 ) -> "tuple[Tensor, Tensor, Tensor, Tensor, Tensor]":
     """The constant tensors of the corner computation of some levels (``[L, 1, ...]``: a level per row), built once
     per resolutions, dtype and device (built on every call, each would be a blocking host-to-device copy on CUDA):
     the last vertex index per axis, the last cell's lower corner, the dense layout's row strides and corner
-    offsets, and the hashing primes."""
+    offsets (in ``index_dtype``), and the hashing primes."""
     size = torch.tensor(resolutions, dtype=dtype, device=device)[:, None, :] - 1
-    strides = torch.tensor([[ry * rz, rz, 1] for _, ry, rz in resolutions], device=device)[:, None, :]
-    offsets = torch.tensor([[(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS] for _, ry, rz in resolutions], device=device)[:, None, :]
+    strides = torch.tensor([[ry * rz, rz, 1] for _, ry, rz in resolutions], dtype=index_dtype, device=device)[:, None, :]
+    offsets = torch.tensor([[(di * ry + dj) * rz + dk for di, dj, dk in _CORNERS] for _, ry, rz in resolutions], dtype=index_dtype,
+                           device=device)[:, None, :]
     primes = torch.tensor(HASH_PRIMES, device=device)
     return size, (size - 1).clamp(min=0), strides, offsets, primes
 
@@ -96,17 +97,10 @@ def dense_rows(lo: Float[Tensor, "levels num_points 3"], resolutions: "tuple[tup
     32-bit integers on the CPU where the levels' vertices fit (its gather reads them so: :func:`~nerfpipe.functional.
     gather.gather_rows_sum`), else 64-bit."""
     key = tuple(tuple(r) for r in resolutions)
-    _, _, strides, offsets, _ = _level_constants(key, lo.dtype, lo.device)
-    if lo.device.type == "cpu" and max(rx * ry * rz for rx, ry, rz in key) < 2**31:
-        strides, offsets = _int32(strides), _int32(offsets)
-        return (lo.int() * strides).sum(-1, dtype=torch.int32)[..., None] + offsets
-    return (lo.long() * strides).sum(-1)[..., None] + offsets
-
-
-@functools.lru_cache(maxsize=256)
-def _int32(constant: Tensor) -> Tensor:
-    """A cached constant of :func:`_level_constants` (itself cached, so the key lives) in 32-bit integers."""
-    return constant.int()
+    fits = lo.device.type == "cpu" and max(rx * ry * rz for rx, ry, rz in key) < 2**31
+    index = torch.int32 if fits else torch.long
+    _, _, strides, offsets, _ = _level_constants(key, lo.dtype, lo.device, index)
+    return (lo.to(index) * strides).sum(-1, dtype=index)[..., None] + offsets
 
 
 def trilinear_lo_levels(
