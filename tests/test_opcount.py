@@ -92,7 +92,9 @@ CPU_TABLE_GRAD_OPS = 40
 (:func:`nerfpipe.functional.gather.table_grad`, session 57: 1.6-3x faster than one ``index_add_`` of rows; the 800²
 stand-in's step 12.7 % faster), 11 more ops per feature level and step: 1,287 -> 1,320 with rounds, 718 -> 751 in
 fixed shapes on this test's three levels. CUDA takes the one ``index_add_``: its budgets are unchanged. Since the
-CPU's rows are 32-bit and the product is written into its layout (session 58): 1,317 / 748."""
+CPU's rows are 32-bit and the product is written into its layout (session 58): 1,317 / 748. Since the CPU's trilinear
+weights and hashed rows are written a corner's column at a time (session 59: 8-11 % faster steps on colmap_mouse and the
+800² stand-in): 1,330 / 754."""
 MAX_SYNCS_PER_STEP = {"rounds": 9.0, "fixed_shapes": 2.0, "graph": 0.0}
 """Host syncs per steady step at most. With rounds: 73.9 at commit 9f82e41 (40.3 of them constant uploads); 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each

@@ -119,12 +119,16 @@ def trilinear_weights(frac: Float[Tensor, "*bs 3"], per_axis: bool) -> Float[Ten
     alike by two routes: broadcast products of ``[..., 3, 2]`` slices (few operations: the GPU's choice), or products
     of whole per-axis tensors (``per_axis``: twice as fast on the CPU, where the broadcast over strided slices is
     slow: 4.4 against 8.7 ms for 3 levels of 60,000 points)."""
-    if per_axis:
+    if per_axis:  # each corner's product written into its column (stacking the products took as long again)
         f = frac.movedim(-1, 0)
         g = 1 - f
         (x0, y0, z0), (x1, y1, z1) = g.unbind(0), f.unbind(0)
-        xy = torch.stack([x0 * y0, x0 * y1, x1 * y0, x1 * y1], dim=-1)
-        return torch.stack([xy * z0[..., None], xy * z1[..., None]], dim=-1).flatten(-2)
+        out = frac.new_empty(*frac.shape[:-1], 8)
+        cols = out.unbind(-1)
+        for c, xy in enumerate(x * y for x in (x0, x1) for y in (y0, y1)):
+            torch.mul(xy, z0, out=cols[2 * c])
+            torch.mul(xy, z1, out=cols[2 * c + 1])
+        return out
     w1 = torch.stack([1 - frac, frac], dim=-1)  # [..., 3, 2]
     return (w1[..., 0, :, None, None] * w1[..., 1, None, :, None] * w1[..., 2, None, None, :]).flatten(-3)
 
@@ -148,12 +152,20 @@ def hashed_rows_per_axis(lo: "Tensor", rows: int) -> Int[Tensor, "*bs 8"]:
     gather_rows_sum`)."""
     if rows > 1 << 31:
         return hashed_rows(lo.long(), rows)
-    lo = lo.movedim(-1, 0).int()
-    p0, p1, p2 = _HASH_PRIMES_INT32
-    a0, b0, c0 = lo[0] * p0, lo[1] * p1, lo[2] if p2 == 1 else lo[2] * p2
-    a1, b1, c1 = a0 + p0, b0 + p1, c0 + p2
-    xy = torch.stack([a0 ^ b0, a0 ^ b1, a1 ^ b0, a1 ^ b1], dim=-1)  # (di, dj) in the order of _CORNERS
-    return torch.stack([xy ^ c0[..., None], xy ^ c1[..., None]], dim=-1).flatten(-2) & (rows - 1)
+    # each axis's two terms masked (AND distributes over XOR), then each corner's XOR written into its column: 1.4x
+    # faster than XORs of stacked [..., 4] terms, stacked and masked (150,000 points of 2 levels, session 59)
+    mask = rows - 1
+    terms = []
+    for t, p in zip(lo.movedim(-1, 0).int().unbind(0), _HASH_PRIMES_INT32):
+        t = t * p if p != 1 else t.clone()
+        terms.append(((t + p).bitwise_and_(mask), t.bitwise_and_(mask)))  # (the + p before t is masked in place)
+    (a1, a0), (b1, b0), (c1, c0) = terms
+    out = torch.empty(*lo.shape[:-1], 8, dtype=torch.int32, device=lo.device)
+    cols = out.unbind(-1)
+    for c, ab in enumerate(a ^ b for a in (a0, a1) for b in (b0, b1)):  # (di, dj) in the order of _CORNERS
+        torch.bitwise_xor(ab, c0, out=cols[2 * c])
+        torch.bitwise_xor(ab, c1, out=cols[2 * c + 1])
+    return out
 
 
 def hashed_row_reference(i: int, j: int, k: int, rows: int) -> int:
