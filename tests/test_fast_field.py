@@ -568,6 +568,11 @@ def test_both_trilinear_weight_routes_agree_bit_for_bit(device):
     a, b = trilinear_weights(frac, per_axis=True), trilinear_weights(frac, per_axis=False)
     assert torch.equal(a, b)
     torch.testing.assert_close(a.sum(-1), torch.ones(3, 200, device=device))
+    # weights that need gradients (camera refinement): the same values, differentiable (the per-axis route writes into
+    # a buffer, which autograd cannot follow)
+    x = frac[:, :5].double().requires_grad_()
+    assert torch.equal(trilinear_weights(x, per_axis=True), trilinear_weights(x.detach(), per_axis=True))
+    assert torch.autograd.gradcheck(lambda t: trilinear_weights(t, per_axis=True), (x,))
 
 
 def test_learning_rates_fall_tenfold_over_the_steps_the_scene_type_asks_for():

@@ -118,8 +118,10 @@ def trilinear_weights(frac: Float[Tensor, "*bs 3"], per_axis: bool) -> Float[Ten
     """The eight trilinear weights (in the order of ``_CORNERS``) of points at ``frac`` in their cells, bit for bit
     alike by two routes: broadcast products of ``[..., 3, 2]`` slices (few operations: the GPU's choice), or products
     of whole per-axis tensors (``per_axis``: twice as fast on the CPU, where the broadcast over strided slices is
-    slow: 4.4 against 8.7 ms for 3 levels of 60,000 points)."""
-    if per_axis:  # each corner's product written into its column (stacking the products took as long again)
+    slow: 4.4 against 8.7 ms for 3 levels of 60,000 points), each corner's product written into its column (stacking
+    the products took as long again, session 59). Writes into a buffer are not differentiable: weights that need
+    gradients (camera refinement) take the broadcast route."""
+    if per_axis and not (frac.requires_grad and torch.is_grad_enabled()):
         f = frac.movedim(-1, 0)
         g = 1 - f
         (x0, y0, z0), (x1, y1, z1) = g.unbind(0), f.unbind(0)
