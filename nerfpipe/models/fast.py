@@ -239,16 +239,6 @@ APPEARANCE_FIT_LR = 0.05
 
 APPEARANCE_FIT_FINAL_LR = 0.1
 
-APPEARANCE_FIT_HULL = True
-"""The fitted view's image code is a mixture of the training images' (centred) codes, ``softmax(w) @ codes`` with
-the weights ``w`` fitted, not a free vector: a held-out photograph's light and weather as a blend of the training
-photographs', where the colour MLPs learned what a code means (the affine colour correction stays free). A free code
-in the eight dimensions that eight training photographs span wanders where the surroundings' colour is undefined and
-the left half's best code does not hold for the right half. Session 60, a Sacre Coeur checkpoint (``nerfpipe train
-SFM --iters 600``, its 2 held-out views at 400 px), four seeds of the fit's rays each: free codes 15.15 / 15.45 / 15.34
-/ 15.48 dB (the first view 14.76-15.44), mixtures **15.53 / 15.51 / 15.53 / 15.51** (the first view 15.10-15.16, the
-second 15.89-15.91 against 15.45-15.56); the correction alone with the mean code 15.25."""
-
 FRONT_MIN_IMAGES = 16
 """Training images from which rays that cross the box also read the field behind the box in front of it
 (``BackgroundFieldConfig.front`` None, ``FastConfig.front_min_images``: :meth:`FastModel._in_front`). Without it the
@@ -968,22 +958,14 @@ class FastModel(Model):
                           steps: "int | None" = None) -> Iterator[bool]:
         """Within the block (evaluation), render with the colour correction and image code fitted by Adam to
         ``rgb`` along ``rays`` (``steps`` steps, default ``appearance_fit_steps``, of up to :data:`APPEARANCE_FIT_BATCH` of them, everything
-        else frozen), instead of the mean; the code as a mixture of the training images' (:data:`APPEARANCE_FIT_HULL`).
-        Yields False, fitting nothing, without per-image appearance."""
+        else frozen), instead of the mean. Yields False, fitting nothing, without per-image appearance."""
         if self.appearance is None:
             yield False
             return
         flat, target = rays.reshape(-1), rgb.reshape(-1, 3).to(rays.origins)
         background = background.to(target)
-        codes = None if self.image_codes is None else (self.image_codes - self.image_codes.mean(0, keepdim=True)).detach()
-        mixed = codes is not None and APPEARANCE_FIT_HULL
-        # the correction, then the code (or the mixture's weights over the training codes: APPEARANCE_FIT_HULL)
-        size = 12 + (0 if codes is None else codes.shape[0] if mixed else codes.shape[1])
+        size = 12 + (0 if self.image_codes is None else self.image_codes.shape[1])  # the correction, then the code
         vec = torch.zeros(size, device=flat.device, requires_grad=True)
-
-        def view_appearance(v: Tensor) -> Tensor:
-            return torch.cat([v[:12], torch.softmax(v[12:], 0) @ codes]) if mixed else v
-
         steps = self.cfg.appearance_fit_steps if steps is None else steps
         opt = torch.optim.Adam([vec], lr=APPEARANCE_FIT_LR)
         decay = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: APPEARANCE_FIT_FINAL_LR ** (k / max(steps - 1, 1)))
@@ -999,9 +981,9 @@ class FastModel(Model):
                 flat, target = flat[keep], target[keep]
                 dir_code, t_exit = direction_encoding(flat.directions), self._behind_start(flat)
                 *_, box_rgb, _, box_acc = self._in_box(flat, dir_code)
+            self._view_appearance = vec
             with torch.enable_grad():
                 for _ in range(steps):
-                    self._view_appearance = view_appearance(vec)
                     i = torch.randint(len(flat), (min(APPEARANCE_FIT_BATCH, len(flat)),), generator=gen, device=flat.device)
                     out = self._over_surroundings(flat[i], box_rgb[i], box_acc[i], background.expand(len(i), 3), dir_code[i], t_exit[i], {})
                     loss = torch.mean((out - target[i]) ** 2)
@@ -1009,7 +991,7 @@ class FastModel(Model):
                     loss.backward()
                     opt.step()
                     decay.step()
-            self._view_appearance = view_appearance(vec).detach()
+            self._view_appearance = vec.detach()
             yield True
         finally:
             for p in frozen:
