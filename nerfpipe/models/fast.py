@@ -229,7 +229,7 @@ subset where there are more: every ray of a 400-pixel view's left half; the box'
 what the appearance changes at every step). 16,384 until session 60: on two Sacre Coeur checkpoints (2 held-out views at
 400 px, one ray per pixel, the fit's seed varied) a 600-step one scored 15.15 / 15.45 / 15.34 / 15.48 dB with 16,384
 rays and 15.47 / 15.50 / 15.47 / 15.37 with every ray (mean 15.36 -> 15.45), a 451-step one 15.68 / 15.69 / 15.67 and
-15.75 / 15.64 / 15.79 (15.68 -> 15.73); the box's colour along them takes about 3 s more a view."""
+15.75 / 15.64 / 15.79 (15.68 -> 15.73); a view's fit and right-half render took 16.8 / 15.1 s against 14.5 / 13.4 (two runs, 2 threads, alone)."""
 
 APPEARANCE_FIT_BATCH = 512
 """Rays of each step of that fit (drawn from those :data:`APPEARANCE_FIT_RAYS`). 2,048 until session 46: on a Sacre
