@@ -59,13 +59,13 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
             with tempfile.TemporaryDirectory() as tmp:
                 work = Path(tmp)
                 start = time.monotonic()
-                rec, _, _ = sfm._candidate(photos, work, config, None)
+                rec, _, _, unfolded = sfm._candidate(photos, work, config, None)
                 sfm.drop_failed_registrations(rec, config.max_centre_spread)
                 seconds = time.monotonic() - start
                 agreement = rotation_agreement(model_rotations(rec), reference, cfg.tolerance)
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
-                                 **agreement))
+                                 **agreement, unfold=unfolded))
                 print(json.dumps(rows[-1]), flush=True)
     finally:
         sfm._options = options

@@ -1,0 +1,177 @@
+"""Folds of a structure-from-motion reconstruction, found by the views it puts side by side, and undone by mapping
+again without the weak photo pairs that support them.
+
+Incremental (and global) mapping of a few photos of an object with repeated structure folds part of the capture
+onto a wrong but self-consistent place: the photos of colmap_mouse show the same printed grip on both sides of the
+mouse, and on 23 of its photos every mapping at 1,024 px (three incremental runs, three with the portrait photos
+turned to share the landscape camera, three global runs with GLOMAP) placed 10-12 of them 70-84 degrees off
+COLMAP's model of all 59 (session 61). Each block of the fold is right in itself; what is wrong is where one
+block sits relative to the other, and the matches between them are split between the two placements (on one such
+database 946 inliers of the cross pairs fit COLMAP's model, 1,145 the fold's): no vote over the pairs breaks it.
+
+What does break it is what the fold leaves *missing*: it moves the folded block's cameras next to cameras of the
+other block whose photographs they share nothing with. Two photographs that a reconstruction shows from nearly the
+same side of the scene (directions from the scene centre and viewing directions each within
+:data:`CLOSE_DEGREES`) should match; a pair that does not (fewer than :data:`CONFLICT_INLIERS` verified matches)
+is a **conflict** (the missing-correspondence evidence of Heinly et al., "Correcting for duplicate scene structure
+in sparse 3D reconstruction", ECCV 2014, in its simplest form). COLMAP's model of the 23 photos has 43 such close
+pairs, none without matches (median 216 matches); the folds had 64-77 close pairs, 4-12 of them without a single
+match.
+
+Undoing it (:func:`unfold`): the fold rests on photo pairs whose few matches agree with it (the repeated print);
+the right placement rests on other pairs, which the folded reconstruction contradicts. Mapping again without the
+verified pairs of fewer than :data:`WEAK_INLIERS` matches that agree with the folded reconstruction (a strong
+pair is kept whatever it says: the blocks are held together by them) leaves the right placement's evidence alone:
+on the three folded databases above, 20 of 22, 20 of 22 and 19 of 19 registered photos within 5 degrees of
+COLMAP's model (median 0.7-1.0 degrees), no conflict left, 3 s of mapping each. The new reconstruction is kept
+only where it has fewer conflicts.
+"""
+
+import contextlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from nerfpipe.util.errors import require
+
+CLOSE_DEGREES = 30.0
+"""Two cameras view the scene from nearly the same side where the directions from the scene centre (the median of
+the points) to their centres and their viewing directions each differ by less than this."""
+
+CONFLICT_INLIERS = 5
+"""Verified matches below which two photographs from nearly the same side conflict."""
+
+WEAK_INLIERS = 60
+"""Verified matches below which a photo pair that agrees with a folded reconstruction is left out of the next
+mapping (the strict mapping's requirement, ``SfmConfig.strict_min_inliers``: the repeated print's pairs of the
+folds above had 15-93 matches, the pairs within a block a median of 216)."""
+
+AGREE_PX = 4.0
+"""Pixels within which a match lies on the epipolar line of a reconstruction's two cameras (Sampson distance)."""
+
+AGREE_SHARE = 0.5
+"""Share of a pair's matches that must agree for the pair to agree with the reconstruction."""
+
+
+def verified_pairs(database: Path) -> "dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]":
+    """The verified photo pairs of a COLMAP database: ``(name_a, name_b) -> (keypoints_a [k, 2], keypoints_b [k, 2])``
+    of their inlier matches, names as the database holds them; pairs without inliers are left out."""
+    pycolmap = require("pycolmap", "colmap")
+    pairs = {}
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        keypoints: dict = {}
+        pair_ids, geometries = db.read_two_view_geometries()
+        for pair_id, geometry in zip(pair_ids, geometries):
+            matches = np.asarray(geometry.inlier_matches)
+            if len(matches) == 0:
+                continue
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            for i in (a, b):
+                if i not in keypoints:
+                    keypoints[i] = np.asarray(db.read_keypoints(i))[:, :2]
+            pairs[(names[a], names[b])] = (keypoints[a][matches[:, 0]], keypoints[b][matches[:, 1]])
+    return pairs
+
+
+def _posed(rec) -> dict:
+    return {image.name: image for image in rec.images.values() if image.has_pose}
+
+
+def pair_agreement(rec, pairs: dict, px: float = AGREE_PX) -> "dict[tuple[str, str], float]":
+    """For each pair of :func:`verified_pairs` whose photos ``rec`` poses: the share of its matches within ``px``
+    pixels (Sampson distance, at the mean focal length of the two cameras) of the epipolar geometry of the two
+    cameras as ``rec`` poses them."""
+    posed = _posed(rec)
+    shares = {}
+    for (a, b), (ka, kb) in pairs.items():
+        ia, ib = posed.get(a), posed.get(b)
+        if ia is None or ib is None:
+            continue
+        ca, cb = rec.cameras[ia.camera_id], rec.cameras[ib.camera_id]
+        xa = np.c_[np.asarray(ca.cam_from_img(np.asarray(ka, dtype=np.float64))), np.ones(len(ka))]
+        xb = np.c_[np.asarray(cb.cam_from_img(np.asarray(kb, dtype=np.float64))), np.ones(len(kb))]
+        ta, tb = np.asarray(ia.cam_from_world().matrix()), np.asarray(ib.cam_from_world().matrix())
+        rotation = tb[:, :3] @ ta[:, :3].T
+        t = tb[:, 3] - rotation @ ta[:, 3]
+        essential = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ rotation
+        ex, etx = xa @ essential.T, xb @ essential
+        sampson = np.sum(xb * ex, axis=1) ** 2 / np.maximum(ex[:, 0] ** 2 + ex[:, 1] ** 2 + etx[:, 0] ** 2 + etx[:, 1] ** 2, 1e-30)
+        focal = 0.5 * (ca.mean_focal_length() + cb.mean_focal_length())
+        shares[(a, b)] = float((np.sqrt(sampson) * focal < px).mean())
+    return shares
+
+
+def view_conflicts(rec, pairs: dict, close_degrees: float = CLOSE_DEGREES, min_inliers: int = CONFLICT_INLIERS) -> "list[tuple[str, str]]":
+    """The pairs of photos that ``rec`` shows from nearly the same side of the scene (see :data:`CLOSE_DEGREES`)
+    but that share fewer than ``min_inliers`` verified matches (``pairs``: :func:`verified_pairs`, every pair of
+    photos tried); names as ``rec`` holds them, sorted."""
+    posed = _posed(rec)
+    if len(posed) < 2 or rec.num_points3D() == 0:
+        return []
+    centre = np.median(np.array([p.xyz for p in rec.points3D.values()]), axis=0)
+    names = sorted(posed)
+    centres = np.array([posed[n].projection_center() for n in names])
+    sides = centres - centre
+    sides /= np.maximum(np.linalg.norm(sides, axis=1, keepdims=True), 1e-12)
+    views = np.array([posed[n].viewing_direction() for n in names])
+    cos = np.cos(np.radians(close_degrees))
+    close = (sides @ sides.T > cos) & (views @ views.T > cos)
+    inliers = {frozenset(k): len(v[0]) for k, v in pairs.items()}
+    return [(names[i], names[j]) for i, j in zip(*np.nonzero(np.triu(close, 1))) if inliers.get(frozenset((names[i], names[j])), 0) < min_inliers]
+
+
+def pairs_supporting(rec, pairs: dict, weak_inliers: int = WEAK_INLIERS) -> "list[tuple[str, str]]":
+    """The pairs of fewer than ``weak_inliers`` matches that agree with ``rec`` (:func:`pair_agreement`)."""
+    agreement = pair_agreement(rec, pairs)
+    return sorted(k for k, share in agreement.items() if share > AGREE_SHARE and len(pairs[k][0]) < weak_inliers)
+
+
+def delete_pairs(database: Path, names: "list[tuple[str, str]]") -> None:
+    """Delete the verified geometries of the photo pairs ``names`` (as the database holds them) from a COLMAP database."""
+    pycolmap = require("pycolmap", "colmap")
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        for a, b in names:
+            db.delete_two_view_geometry(ids[a], ids[b])
+
+
+UNFOLD_ROUNDS = 3
+"""Mappings :func:`unfold` tries at most: a mapping without the fold's pairs can fold again elsewhere (one of three
+on the 23 photos above: 20 photos and 5 conflicts; its next round left none)."""
+
+
+def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) -> "tuple[object, dict]":
+    """``rec`` (mapped from ``database``, every pair of photos matched), or where it has :func:`view_conflicts` the
+    reconstruction with the fewest that ``remap(path)`` maps from a copy of the database in ``work`` without the weak
+    pairs that agree with the reconstruction before (:func:`pairs_supporting`), round after round until one has no
+    conflict (at most ``rounds``); one that registers fewer than half of ``rec``'s photos is not kept. Returns it
+    and what was done."""
+    pairs = verified_pairs(database)
+    conflicts = view_conflicts(rec, pairs)
+    record: dict = {"conflicts": len(conflicts), "registered": rec.num_reg_images()}
+    if not conflicts:
+        return rec, record
+    best, fewest, current, source, tried = rec, len(conflicts), rec, database, []
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    for k in range(rounds):
+        drop = pairs_supporting(current, verified_pairs(source))
+        copy = work / f"round{k}.db"
+        shutil.copyfile(source, copy)
+        delete_pairs(copy, drop)
+        other = remap(copy)
+        if other is None:
+            break
+        left = view_conflicts(other, pairs)
+        tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left)})
+        if len(left) < fewest and 2 * other.num_reg_images() >= rec.num_reg_images():
+            best, fewest = other, len(left)
+            tried[-1]["kept"] = True
+        if not left:
+            break
+        current, source = other, copy
+    record["rounds"] = tried
+    record["kept"] = best is not rec
+    return best, record
