@@ -453,14 +453,15 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
         dropped = drop_failed_registrations(rec, config.max_centre_spread)
         if dropped:
             ctx.log.warning("sfm: dropped %d registrations as failed (bogus intrinsics or far off): %s", len(dropped), ", ".join(dropped))
-        rec, images, chosen = choose_reconstruction(photos, work, config, (rec, images), ctx.time_left(), ctx.log)
+        rec, images, chosen = choose_reconstruction(photos, work, config, (rec, images), ctx.time_left(), ctx.log, unfolded)
     except NerfpipeError as exc:  # name the user's photos, not the scratch folder (a photo at fault keeps its name)
         if exc.path is not None and (exc.path == work or work in exc.path.parents):
             raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
         raise
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
-    record = summary(rec, photos, seconds) | {"dropped": dropped, "unfold": unfolded} | chosen
+    chosen["unfold"] = {config.max_image_size: unfolded} | chosen.get("unfold", {})
+    record = summary(rec, photos, seconds) | {"dropped": dropped} | chosen
     _write_result(rec, images, work, ctx.path(SFM_DIR), config.undistort, record, config.verbose)
     ctx.log.info("sfm: %d of %d photos registered, %d points", record["num_registered"], len(photos), rec.num_points3D())
     result = pycolmap.Reconstruction(str(_model_dir(ctx.path(SFM_DIR))))
@@ -599,13 +600,14 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
     return rec, seconds, work / "images", unfolded
 
 
-def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log) -> "tuple[object, Path, dict]":
+def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
+                          first_unfolded: "dict | None" = None) -> "tuple[object, Path, dict]":
     """The reconstruction to keep among ``first`` (``(rec, images folder)``, at ``max_image_size``, made in ``work``,
     its failed registrations dropped) and those at ``candidate_sizes`` (see :attr:`SfmConfig.candidate_sizes`), then
     without the photos that only weak matches attach (:func:`strict_check`) where no reconstruction at another size
     agrees with it; returns it, its images folder and what was decided."""
     started = time.monotonic()
-    rec, images, record, rivals = _choose_by_size(photos, work, config, first, time_left, log)
+    rec, images, record, rivals = _choose_by_size(photos, work, config, first, time_left, log, first_unfolded or {})
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
@@ -660,12 +662,20 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     kept (:func:`keep_consensus`). Returns the one kept, its images folder and what was decided."""
     rec, images = chosen
     if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * STRICT_FIT_SECONDS:
-        consensus = keep_consensus(rec, rivals or {})
+        database = images.parent / "database.db"
+        unfolded = config.unfold and len(photos) <= config.exhaustive_max_photos and database.is_file()
+        unshared = bool(unfolded and len(unfold.view_conflicts(rec, unfold.verified_pairs(database))) < unfold.MIN_CONFLICTS)
+        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared)
         if consensus:
             log.warning("sfm: no time to test the reconstruction for a fold (%.0f s left): kept the %d of its %d photos that the "
-                        "%d px reconstruction places alike (a run with a larger --time-budget tests them all)", time_left,
-                        consensus["kept"], consensus["of"], consensus["max_image_size"])  # fmt: skip
+                        "%d px reconstruction %s (a run with a larger --time-budget tests them all)", time_left,
+                        consensus["kept"], consensus["of"], consensus["max_image_size"],
+                        "does not place otherwise" if unshared else "places alike")  # fmt: skip
             return rec, images, {"skipped": "too little time left", "consensus": consensus}
+        if unshared:  # no photos side by side without matches: no sign of a fold
+            log.info("sfm: no reconstruction at another image size agrees with the one kept; it shows no sign of a fold "
+                     "(a run with a larger --time-budget tests it further)")
+            return rec, images, {"skipped": "too little time left", "conflicts": "none"}
         log.warning("sfm: no reconstruction at another image size agrees with the one kept, and the time budget leaves too "
                     "little (%.0f s) to test it for a fold: its poses may fold part of the capture (look at "
                     "mesh/mesh_views.png; a run with a larger --time-budget tests it)", time_left)
@@ -702,11 +712,14 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     return strict, strict_images, record
 
 
-def keep_consensus(rec, rivals: "dict[int, dict]") -> "dict | None":
+def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False) -> "dict | None":
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
-    than :data:`CHECK_VIEWS` + 2 photos and fewer than all. Two independent mappings rarely fold the same block the same
-    way: in three runs of a 23-photo folder of colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model
+    than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
+    fewer :func:`nerfpipe.plugins.unfold.view_conflicts` than ``MIN_CONFLICTS``): only the photos that rival places otherwise, not those it
+    leaves out (23 of colmap_mouse's photos, session 61: unfolded at 1,024 px, 21 registered, 19 of them right; at
+    640 px 12, 10 of them placed alike: the 10 alone trained to 20.62 dB, `--time-budget 180`). Two independent
+    mappings rarely fold the same block the same way: in three runs of a 23-photo folder of colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model
     of all 56 photos) the chosen reconstructions held 11, 10 and 11 right photos of 23; the photos the other size
     placed alike were 10, 10 and 17, the first two all mutually consistent (within 0.4 and 0.6 degrees), the third 10
     of 17 (both sizes folded alike there: no worse than before). Returns what was kept, or None where nothing was."""
@@ -715,7 +728,8 @@ def keep_consensus(rec, rivals: "dict[int, dict]") -> "dict | None":
     rotations = model_rotations(rec)
     best = None
     for size, rival in rivals.items():
-        alike = {n for n, e in rotation_errors(rotations, rival).items() if e < 5.0}
+        errors = rotation_errors(rotations, rival)
+        alike = {n for n, e in errors.items() if e < 5.0} | ({n for n in rotations if n not in errors} if keep_unshared else set())
         if best is None or len(alike) > len(best[1]):
             best = size, alike
     if best is None or not CHECK_VIEWS + 2 < len(best[1]) < len(rotations):
@@ -765,16 +779,21 @@ def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, v
     return record
 
 
-def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log) -> "tuple[object, Path, dict, dict]":
+def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
+                    first_unfolded: "dict | None" = None) -> "tuple[object, Path, dict, dict]":
     """:func:`choose_reconstruction` among the reconstructions at the image sizes; also the rotations
     (:func:`model_rotations`) of the reconstructions that do not corroborate the one kept (they disagree with it, or
-    register too few photos to be candidates), by their image size."""
+    register too few photos to be candidates), by their image size. Where some reconstructions keep a fold that
+    :func:`nerfpipe.plugins.unfold.unfold` could not undo and others show none, the folded ones are neither candidates
+    nor witnesses (23 of colmap_mouse's photos, session 61: the 640 px reconstruction with 16 conflicts left made the
+    unfolded 1,024 px one's consensus keep 9 of its 16 photos)."""
     rec, images = first
     record: dict = {}
     if not config.candidate_sizes or len(photos) > config.candidate_max_photos:
         return rec, images, record, {}
     started = time.monotonic()
     candidates = [(config.max_image_size, rec, images)]
+    folded = {config.max_image_size: unfold.still_folded(first_unfolded or {})}
     for size in config.candidate_sizes:
         if time_left is not None and time.monotonic() - started > CHECK_MAX_SHARE * time_left:
             break
@@ -786,6 +805,10 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
         drop_failed_registrations(other, config.max_centre_spread)
         candidates.append((size, other, other_images))
         record.setdefault("unfold", {})[size] = unfolded
+        folded[size] = unfold.still_folded(unfolded)
+    if not all(folded.values()) and any(folded.values()):
+        record["still_folded"] = [c[0] for c in candidates if folded[c[0]]]
+        candidates = [c for c in candidates if not folded[c[0]]]
     most = max(c[1].num_reg_images() for c in candidates)  # one that registers far fewer photos is no alternative
     few = [c for c in candidates if c[1].num_reg_images() < MIN_REGISTERED_SHARE * most]  # no alternatives, but witnesses (rivals)
     candidates = [c for c in candidates if c[1].num_reg_images() >= MIN_REGISTERED_SHARE * most]

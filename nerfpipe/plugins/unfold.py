@@ -47,6 +47,11 @@ WEAK_INLIERS = 60
 mapping (the strict mapping's requirement, ``SfmConfig.strict_min_inliers``: the repeated print's pairs of the
 folds above had 15-93 matches, the pairs within a block a median of 216)."""
 
+MIN_CONFLICTS = 2
+"""Conflicts that make a fold: the folds of colmap_mouse's photos (at 1,024 and 640 px, 15-30 photos) had 3-12; a
+right reconstruction of 30 of its photos had one, and a 640 px one of 23 had one that mapping again without its weak
+pairs turned into a fold (7 of 17 photos placed as the 1,024 px reconstruction did)."""
+
 AGREE_PX = 4.0
 """Pixels within which a match lies on the epipolar line of a reconstruction's two cameras (Sampson distance)."""
 
@@ -56,11 +61,12 @@ AGREE_SHARE = 0.5
 
 def verified_pairs(database: Path) -> "dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]":
     """The verified photo pairs of a COLMAP database: ``(name_a, name_b) -> (keypoints_a [k, 2], keypoints_b [k, 2])``
-    of their inlier matches, names as the database holds them; pairs without inliers are left out."""
+    of their inlier matches, by file name (without the folder the sfm stage groups the photos of a camera in);
+    pairs without inliers are left out."""
     pycolmap = require("pycolmap", "colmap")
     pairs = {}
     with contextlib.closing(pycolmap.Database.open(str(database))) as db:
-        names = {image.image_id: image.name for image in db.read_all_images()}
+        names = {image.image_id: Path(image.name).name for image in db.read_all_images()}
         keypoints: dict = {}
         pair_ids, geometries = db.read_two_view_geometries()
         for pair_id, geometry in zip(pair_ids, geometries):
@@ -76,7 +82,7 @@ def verified_pairs(database: Path) -> "dict[tuple[str, str], tuple[np.ndarray, n
 
 
 def _posed(rec) -> dict:
-    return {image.name: image for image in rec.images.values() if image.has_pose}
+    return {Path(image.name).name: image for image in rec.images.values() if image.has_pose}
 
 
 def pair_agreement(rec, pairs: dict, px: float = AGREE_PX) -> "dict[tuple[str, str], float]":
@@ -106,7 +112,7 @@ def pair_agreement(rec, pairs: dict, px: float = AGREE_PX) -> "dict[tuple[str, s
 def view_conflicts(rec, pairs: dict, close_degrees: float = CLOSE_DEGREES, min_inliers: int = CONFLICT_INLIERS) -> "list[tuple[str, str]]":
     """The pairs of photos that ``rec`` shows from nearly the same side of the scene (see :data:`CLOSE_DEGREES`)
     but that share fewer than ``min_inliers`` verified matches (``pairs``: :func:`verified_pairs`, every pair of
-    photos tried); names as ``rec`` holds them, sorted."""
+    photos tried); by file name, sorted."""
     posed = _posed(rec)
     if len(posed) < 2 or rec.num_points3D() == 0:
         return []
@@ -129,10 +135,10 @@ def pairs_supporting(rec, pairs: dict, weak_inliers: int = WEAK_INLIERS) -> "lis
 
 
 def delete_pairs(database: Path, names: "list[tuple[str, str]]") -> None:
-    """Delete the verified geometries of the photo pairs ``names`` (as the database holds them) from a COLMAP database."""
+    """Delete the verified geometries of the photo pairs ``names`` (file names, as :func:`verified_pairs`) from a COLMAP database."""
     pycolmap = require("pycolmap", "colmap")
     with contextlib.closing(pycolmap.Database.open(str(database))) as db:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
+        ids = {Path(image.name).name: image.image_id for image in db.read_all_images()}
         for a, b in names:
             db.delete_two_view_geometry(ids[a], ids[b])
 
@@ -152,17 +158,18 @@ on the 23 photos above: 20 photos and 5 conflicts; its next round left none)."""
 
 
 def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) -> "tuple[object, dict]":
-    """``rec`` (mapped from ``database``, every pair of photos matched), or where it has :func:`view_conflicts` the
-    reconstruction with the fewest that ``remap(path)`` maps from a copy of the database in ``work`` without the weak
-    pairs that agree with the reconstruction before (:func:`pairs_supporting`), round after round until one has no
-    conflict (at most ``rounds``). One that registers fewer than half of ``rec``'s photos is not kept, nor one that
+    """``rec`` (mapped from ``database``, every pair of photos matched), or where it has :data:`MIN_CONFLICTS`
+    :func:`view_conflicts` or more the first reconstruction with fewer that ``remap(path)`` maps from a copy of the
+    database in ``work`` without the weak pairs that agree with the reconstruction before (:func:`pairs_supporting`),
+    round after round (at most ``rounds``). One that registers fewer than half of ``rec``'s photos is not kept, nor one that
     places the photos as ``rec`` does (:func:`same_poses`): then the conflicts were no fold, only photos that do not
     match (on a 30-photo cut of colmap_mouse, right at 1,024 px, one conflict; the mapping without the weak pairs
-    registered 26 of its 30 photos, all as before). Returns it and what was done."""
+    registered 26 of its 30 photos, all as before). From a reconstruction kept this way, the :func:`misplaced` photos
+    are deregistered (fewer than a quarter of them). Returns it and what was done."""
     pairs = verified_pairs(database)
     conflicts = view_conflicts(rec, pairs)
-    record: dict = {"conflicts": len(conflicts), "registered": rec.num_reg_images()}
-    if not conflicts:
+    record: dict = {"conflicts": len(conflicts), "registered": rec.num_reg_images(), "conflicts_left": len(conflicts)}
+    if len(conflicts) < MIN_CONFLICTS:
         return rec, record
     best, fewest, current, source, tried = rec, len(conflicts), rec, database, []
     shutil.rmtree(work, ignore_errors=True)
@@ -179,12 +186,45 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) 
         tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left)})
         moved = not same_poses(other, rec)
         tried[-1]["moved"] = moved
-        if moved and len(left) < fewest and 2 * other.num_reg_images() >= rec.num_reg_images():
+        if moved and len(left) < min(fewest, MIN_CONFLICTS) and 2 * other.num_reg_images() >= rec.num_reg_images():
             best, fewest = other, len(left)
             tried[-1]["kept"] = True
-        if not left:
+        if len(left) < MIN_CONFLICTS:
             break
         current, source = other, copy
     record["rounds"] = tried
     record["kept"] = best is not rec
+    record["conflicts_left"] = fewest
+    if record["kept"]:  # a capture with repeated structure: a photo or two may still sit where their matches say it is not
+        from nerfpipe.plugins.sfm import keep_registered
+
+        wrong = misplaced(best, pairs)
+        if wrong and len(wrong) < best.num_reg_images() // 4:
+            keep_registered(best, {Path(image.name).name for image in best.images.values() if image.has_pose} - set(wrong))
+            record["misplaced"] = wrong
     return best, record
+
+
+MISPLACED_SHARE = 0.5
+"""Share of a photo's verified matches below which their agreement with a reconstruction (:func:`pair_agreement`,
+weighted by the matches) marks it misplaced (:func:`misplaced`). Unfolded reconstructions of 23 of colmap_mouse's
+photos: the two back views left 43 and 59 degrees off 0.48 and 0.40, the right photos 0.61-0.95 (session 61)."""
+
+
+def misplaced(rec, pairs: dict, share: float = MISPLACED_SHARE) -> "list[str]":
+    """The photos (file names) of ``rec`` fewer than ``share`` of whose verified matches agree with where ``rec``
+    places them and the photos it pairs them with."""
+    agreement = pair_agreement(rec, pairs)
+    total: dict = {}
+    agreeing: dict = {}
+    for (a, b), s in agreement.items():
+        n = len(pairs[(a, b)][0])
+        for name in (a, b):
+            total[name] = total.get(name, 0) + n
+            agreeing[name] = agreeing.get(name, 0.0) + s * n
+    return sorted(name for name in total if agreeing[name] < share * total[name])
+
+
+def still_folded(record: dict) -> bool:
+    """Whether the reconstruction that :func:`unfold` returned with ``record`` has a fold it could not undo."""
+    return record.get("conflicts_left", 0) >= MIN_CONFLICTS

@@ -1,0 +1,138 @@
+"""Folds of a structure-from-motion reconstruction (``nerfpipe.plugins.unfold``) on COLMAP's model of colmap_mouse:
+its own tracks as the verified matches, and the same model with a block of cameras turned about the scene centre
+(as incremental mapping folds part of a capture with repeated structure)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nerfpipe.plugins import unfold
+
+
+def _model(scene_path):
+    import pycolmap
+
+    return pycolmap.Reconstruction(str(scene_path("colmap_mouse") / "sparse" / "0"))
+
+
+def _track_pairs(rec) -> dict:
+    """Verified pairs as :func:`unfold.verified_pairs` returns them, from the model's tracks (each point seen in two
+    photos is one match between them)."""
+    points: dict = {}
+    names = {i: Path(image.name).name for i, image in rec.images.items()}
+    for point in rec.points3D.values():
+        elements = [(names[e.image_id], np.asarray(rec.images[e.image_id].points2D[e.point2D_idx].xy)) for e in point.track.elements]
+        for i, (a, xa) in enumerate(elements):
+            for b, xb in elements[i + 1 :]:
+                if a != b:
+                    key, xy = ((a, b), (xa, xb)) if a < b else ((b, a), (xb, xa))
+                    points.setdefault(key, []).append(xy)
+    return {k: (np.array([x for x, _ in v]), np.array([y for _, y in v])) for k, v in points.items()}
+
+
+def _folded(rec, block: "set[str]", degrees: float = 80.0):
+    """``rec`` with the cameras of ``block`` turned ``degrees`` about the vertical through the points' median (the
+    world turned under them): a block placed elsewhere, right in itself."""
+    import pycolmap
+    from scipy.spatial.transform import Rotation
+
+    centre = np.median(np.array([p.xyz for p in rec.points3D.values()]), axis=0)
+    up = -np.mean([np.asarray(image.cam_from_world().rotation.matrix())[1] for image in rec.images.values() if image.has_pose], axis=0)
+    turn = Rotation.from_rotvec(np.radians(degrees) * up / np.linalg.norm(up)).as_matrix()
+    for image in rec.images.values():
+        if image.has_pose and Path(image.name).name in block:
+            pose = image.cam_from_world()
+            r, t = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+            # world point x seen as before from turn(x - c) + c: cam_from_world' = cam_from_world o turn^-1 about c
+            rotation = r @ turn.T
+            translation = t + r @ centre - rotation @ centre
+            rec.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
+    return rec
+
+
+def test_the_right_model_agrees_with_its_matches_and_has_no_conflicts(scene_path):
+    """Every pair of COLMAP's model agrees with its epipolar geometry (its reprojection error is 0.63 px); photographs
+    it shows from nearly the same side share matches, and a close pair whose matches are taken away is a conflict."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    agreement = unfold.pair_agreement(rec, pairs)
+    assert len(agreement) == len(pairs) > 500
+    assert np.mean(list(agreement.values())) > 0.97 and min(agreement.values()) > 0.5
+    assert unfold.view_conflicts(rec, pairs) == []
+    close = unfold.view_conflicts(rec, {}, min_inliers=1)  # no matches at all: every close pair
+    assert len(close) > 20
+    taken = dict(pairs)
+    del taken[close[0]]
+    assert unfold.view_conflicts(rec, taken) == [close[0]]
+
+
+def test_a_folded_block_contradicts_the_matches_between_the_blocks_and_sits_beside_photos_it_shares_nothing_with(scene_path):
+    """Half of the cameras turned 80 degrees about the scene: the pairs within each block still agree, those across
+    do not; the turned cameras land beside cameras whose photographs they do not match (conflicts); the weak pairs that
+    agree with the fold lie within the blocks (but for a few matches agreeing by chance)."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    block = set(names[::2])
+    folded = _folded(rec, block)
+    agreement = unfold.pair_agreement(folded, pairs)
+    within = [s for (a, b), s in agreement.items() if (a in block) == (b in block)]
+    across = [s for (a, b), s in agreement.items() if (a in block) != (b in block)]
+    assert np.mean(within) > 0.97 and np.mean(across) < 0.1
+    conflicts = unfold.view_conflicts(folded, pairs)
+    assert conflicts and all((a in block) != (b in block) for a, b in conflicts)
+    supporting = unfold.pairs_supporting(folded, pairs)
+    assert supporting and all(len(pairs[k][0]) < unfold.WEAK_INLIERS for k in supporting)
+    across = [(a, b) for a, b in supporting if (a in block) != (b in block)]  # by chance only (one of 367: 2 of 3 matches)
+    assert len(across) <= 0.01 * len(supporting) and all(len(pairs[k][0]) <= 5 for k in across)
+
+
+def test_unfold_keeps_a_remapped_reconstruction_only_where_it_moved_the_photos_and_has_fewer_conflicts(scene_path, tmp_path, monkeypatch):
+    """The choice of :func:`unfold.unfold`, with the mapping and the database replaced by the model itself: the right
+    model mapped again is kept over a fold; the fold mapped again as it was, a mapping that failed or one that
+    registers less than half of the photos are not; a reconstruction without conflicts is left alone."""
+    import pycolmap
+
+    from nerfpipe.plugins.sfm import keep_registered
+
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    monkeypatch.setattr(unfold, "verified_pairs", lambda database: pairs)
+    deleted = []
+    monkeypatch.setattr(unfold, "delete_pairs", lambda database, drop: deleted.append(list(drop)))
+    database = tmp_path / "database.db"
+    database.write_bytes(b"")
+
+    def fold():
+        return _folded(_model(scene_path), set(names[::2]))
+
+    kept, record = unfold.unfold(rec, database, tmp_path / "work", remap=lambda path: pytest.fail("no conflict: no mapping"))
+    assert kept is rec and record == {"conflicts": 0, "registered": len(names), "conflicts_left": 0}
+    folded = fold()
+    kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=lambda path: _model(scene_path))
+    assert record["kept"] and record["conflicts"] > 0 and record["rounds"] == [{"pairs_left_out": len(deleted[-1]), "registered": len(names), "conflicts": 0, "moved": True, "kept": True}]
+    assert unfold.view_conflicts(kept, pairs) == [] and deleted[-1] == unfold.pairs_supporting(folded, pairs)
+    assert record["conflicts_left"] == 0 and "misplaced" not in record and not unfold.still_folded(record)
+    misplaced_one = _folded(_model(scene_path), {names[7]})  # the right model mapped again but for one photo
+    kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=lambda path: misplaced_one)
+    assert record["misplaced"] == [names[7]] and kept is misplaced_one and kept.num_reg_images() == len(names) - 1
+    for remap in (lambda path: fold(), lambda path: None):
+        kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=remap)
+        assert kept is folded and not record["kept"] and unfold.still_folded(record)
+    assert len(record["rounds"]) == 0  # the failed mapping
+    few = _model(scene_path)
+    keep_registered(few, set(names[: len(names) // 3]))
+    kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=lambda path: few)
+    assert kept is folded and not record["kept"] and record["rounds"][0]["registered"] == len(names) // 3
+
+
+def test_a_lone_misplaced_photo_is_the_one_whose_matches_disagree(scene_path):
+    """One camera of COLMAP's model turned 80 degrees about the scene: most of its matches disagree with where it
+    sits, while every other photo keeps most of its own (its pairs with the turned one are a small part)."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    assert unfold.misplaced(rec, pairs) == []
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    assert unfold.misplaced(_folded(rec, {names[7]}), pairs) == [names[7]]
