@@ -161,10 +161,10 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) 
     """``rec`` (mapped from ``database``, every pair of photos matched), or where it has :data:`MIN_CONFLICTS`
     :func:`view_conflicts` or more the first reconstruction with fewer that ``remap(path)`` maps from a copy of the
     database in ``work`` without the weak pairs that agree with the reconstruction before (:func:`pairs_supporting`),
-    round after round (at most ``rounds``). One that registers fewer than half of ``rec``'s photos is not kept, nor one that
-    places the photos as ``rec`` does (:func:`same_poses`): then the conflicts were no fold, only photos that do not
-    match (on a 30-photo cut of colmap_mouse, right at 1,024 px, one conflict; the mapping without the weak pairs
-    registered 26 of its 30 photos, all as before). From a reconstruction kept this way, the :func:`misplaced` photos
+    round after round (at most ``rounds``), where it registers at least half of ``rec``'s photos. Whether it moved
+    the photos it shares with ``rec`` (:func:`same_poses`) is recorded, not required: a fold's block of photos left
+    out entirely leaves the others where they were (a 23-photo cut of colmap_mouse, 12 conflicts: 11 of 20 photos kept,
+    all right). From a reconstruction kept this way, the :func:`misplaced` photos
     are deregistered (fewer than a quarter of them). Returns it and what was done."""
     pairs = verified_pairs(database)
     conflicts = view_conflicts(rec, pairs)
@@ -186,7 +186,7 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) 
         tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left)})
         moved = not same_poses(other, rec)
         tried[-1]["moved"] = moved
-        if moved and len(left) < min(fewest, MIN_CONFLICTS) and 2 * other.num_reg_images() >= rec.num_reg_images():
+        if len(left) < min(fewest, MIN_CONFLICTS) and 2 * other.num_reg_images() >= rec.num_reg_images():
             best, fewest = other, len(left)
             tried[-1]["kept"] = True
         if len(left) < MIN_CONFLICTS:
