@@ -6,6 +6,7 @@ capture onto the wrong side keeps the rest exact, so a least-squares alignment w
 
 Run: ``python -m benchmarks.sfm_poses PHOTOS REFERENCE_MODEL --runs 5``; one JSON line per run.
 Session 28: 23 of colmap_mouse's photos (every 56/23-th by name) against COLMAP's model of all 56, one line per run.
+Since session 61 each run is unfolded as the stage does (``unfold`` in its line: ``nerfpipe.plugins.unfold``).
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
