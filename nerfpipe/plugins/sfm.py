@@ -588,7 +588,8 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
             except NerfpipeError:
                 return None
 
-        rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap)
+        longest = max(max(w, h) for w, h, _ in info)
+        rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap, weak=unfold.weak_inliers(longest))
         seconds["unfold"] = time.monotonic() - t
         if unfolded.get("kept") and log is not None:
             kept = [r for r in unfolded["rounds"] if r.get("kept")][-1]

@@ -43,9 +43,19 @@ CONFLICT_INLIERS = 5
 """Verified matches below which two photographs from nearly the same side conflict."""
 
 WEAK_INLIERS = 60
-"""Verified matches below which a photo pair that agrees with a folded reconstruction is left out of the next
-mapping (the strict mapping's requirement, ``SfmConfig.strict_min_inliers``: the repeated print's pairs of the
-folds above had 15-93 matches, the pairs within a block a median of 216)."""
+"""Verified matches below which a photo pair that agrees with a folded reconstruction of photos 1,024 px wide is left
+out of the next mapping (the strict mapping's requirement, ``SfmConfig.strict_min_inliers``: the repeated print's
+pairs of the folds above had 15-93 matches, the pairs within a block a median of 216); in proportion to the photos'
+longest side otherwise (:func:`weak_inliers`)."""
+
+
+def weak_inliers(longest_side: int) -> int:
+    """:data:`WEAK_INLIERS` for photos whose longest side is ``longest_side`` px, in proportion. Four folded 640 px
+    reconstructions of 23 of colmap_mouse's photos (session 61): at 60 matches 2 photos registered (not kept), 17 of
+    17 right, 10 of 16 right (kept: one conflict) and one left alone (1 conflict); at 40, 10 of 10, 19 of 19, 19 of 19;
+    at 25, 10 of 10, 19 of 20, 12 of 18. At 1,024 px, 60 against 40 on five folded databases: 20 of 20 against 18 of
+    19, 20 of 22 against 18 of 19, 19 of 19 against 18 of 19, 10 of 18 against 10 of 20, 10 of 10 against 10 of 14."""
+    return max(1, round(WEAK_INLIERS * longest_side / 1024))
 
 MIN_CONFLICTS = 2
 """Conflicts that make a fold: the folds of colmap_mouse's photos (at 1,024 and 640 px, 15-30 photos) had 3-12; a
@@ -157,15 +167,16 @@ UNFOLD_ROUNDS = 3
 on the 23 photos above: 20 photos and 5 conflicts; its next round left none)."""
 
 
-def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) -> "tuple[object, dict]":
+def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS, weak: int = WEAK_INLIERS) -> "tuple[object, dict]":
     """``rec`` (mapped from ``database``, every pair of photos matched), or where it has :data:`MIN_CONFLICTS`
     :func:`view_conflicts` or more the first reconstruction with fewer that ``remap(path)`` maps from a copy of the
-    database in ``work`` without the weak pairs that agree with the reconstruction before (:func:`pairs_supporting`),
-    round after round (at most ``rounds``), where it registers at least half of ``rec``'s photos. Whether it moved
-    the photos it shares with ``rec`` (:func:`same_poses`) is recorded, not required: a fold's block of photos left
-    out entirely leaves the others where they were (a 23-photo cut of colmap_mouse, 12 conflicts: 11 of 20 photos kept,
-    all right). From a reconstruction kept this way, the :func:`misplaced` photos
-    are deregistered (fewer than a quarter of them). Returns it and what was done."""
+    database in ``work`` without the pairs of fewer than ``weak`` matches that agree with the reconstruction before
+    (:func:`pairs_supporting`; ``weak``: :func:`weak_inliers`), round after round (at most ``rounds``), where it
+    registers at least half of ``rec``'s photos. Whether it moved the photos it shares with ``rec``
+    (:func:`same_poses`) is recorded, not required: a fold's block of photos left out entirely leaves the others where
+    they were (a 23-photo cut of colmap_mouse, 12 conflicts: 11 of 20 photos kept, all right). From a reconstruction
+    kept this way, the :func:`misplaced` photos are deregistered (fewer than a quarter of them). Returns it and what
+    was done."""
     pairs = verified_pairs(database)
     conflicts = view_conflicts(rec, pairs)
     record: dict = {"conflicts": len(conflicts), "registered": rec.num_reg_images(), "conflicts_left": len(conflicts)}
@@ -175,7 +186,7 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS) 
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     for k in range(rounds):
-        drop = pairs_supporting(current, verified_pairs(source))
+        drop = pairs_supporting(current, verified_pairs(source), weak)
         copy = work / f"round{k}.db"
         shutil.copyfile(source, copy)
         delete_pairs(copy, drop)
