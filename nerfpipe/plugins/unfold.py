@@ -51,9 +51,9 @@ longest side otherwise (:func:`weak_inliers`)."""
 
 def weak_inliers(longest_side: int) -> int:
     """:data:`WEAK_INLIERS` for photos whose longest side is ``longest_side`` px, in proportion. Four folded 640 px
-    reconstructions of 23 of colmap_mouse's photos (session 61): at 60 matches 2 photos registered (not kept), 17 of
-    17 right, 10 of 16 right (kept: one conflict) and one left alone (1 conflict); at 40, 10 of 10, 19 of 19, 19 of 19;
-    at 25, 10 of 10, 19 of 20, 12 of 18. At 1,024 px, 60 against 40 on five folded databases: 20 of 20 against 18 of
+    reconstructions of 23 of colmap_mouse's photos (session 61; a fourth had one conflict and is left alone): at 60
+    matches 2 photos registered (not kept), 17 of 17 right, 10 of 16 right (kept: one conflict); at 40, 10 of 10, 19 of
+    19, 19 of 19; at 25, 10 of 10, 19 of 20, 12 of 18. At 1,024 px, 60 against 40 on five folded databases: 20 of 20 against 18 of
     19, 20 of 22 against 18 of 19, 19 of 19 against 18 of 19, 10 of 18 against 10 of 20, 10 of 10 against 10 of 14."""
     return max(1, round(WEAK_INLIERS * longest_side / 1024))
 
