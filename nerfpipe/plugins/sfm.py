@@ -588,9 +588,11 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
         def remap(database: Path):
             left = None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
             try:
-                return reconstruct(work / "grouped", work / "unfold", config, info, left, matches_from=database, single_model=True)[0]
+                other = reconstruct(work / "grouped", work / "unfold", config, info, left, matches_from=database, single_model=True)[0]
             except NerfpipeError:
                 return None
+            drop_failed_registrations(other, config.max_centre_spread)  # judged as the stage keeps it
+            return other
 
         longest = max(max(w, h) for w, h, _ in info)
         rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap, weak=unfold.weak_inliers(longest))
