@@ -91,7 +91,7 @@ def test_a_folded_block_contradicts_the_matches_between_the_blocks_and_sits_besi
 def test_unfold_keeps_a_remapped_reconstruction_only_where_it_moved_the_photos_and_has_fewer_conflicts(scene_path, tmp_path, monkeypatch):
     """The choice of :func:`unfold.unfold`, with the mapping and the database replaced by the model itself: the right
     model mapped again is kept over a fold; the fold mapped again as it was, a mapping that failed or one that
-    registers less than half of the photos are not; a reconstruction without conflicts is left alone."""
+    registers less than a third of the photos are not; a reconstruction without conflicts is left alone."""
     import pycolmap
 
     from nerfpipe.plugins.sfm import keep_registered
