@@ -88,12 +88,10 @@ def test_a_folded_block_contradicts_the_matches_between_the_blocks_and_sits_besi
     assert len(across) <= 0.01 * len(supporting) and all(len(pairs[k][0]) <= 5 for k in across)
 
 
-def test_unfold_keeps_a_remapped_reconstruction_only_where_it_moved_the_photos_and_has_fewer_conflicts(scene_path, tmp_path, monkeypatch):
+def test_unfold_keeps_a_remapped_reconstruction_only_without_conflicts_and_with_a_third_of_the_photos(scene_path, tmp_path, monkeypatch):
     """The choice of :func:`unfold.unfold`, with the mapping and the database replaced by the model itself: the right
     model mapped again is kept over a fold; the fold mapped again as it was, a mapping that failed or one that
     registers less than a third of the photos are not; a reconstruction without conflicts is left alone."""
-    import pycolmap
-
     from nerfpipe.plugins.sfm import keep_registered
 
     rec = _model(scene_path)

@@ -614,7 +614,7 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     without the photos that only weak matches attach (:func:`strict_check`) where no reconstruction at another size
     agrees with it; returns it, its images folder and what was decided."""
     started = time.monotonic()
-    rec, images, record, rivals = _choose_by_size(photos, work, config, first, time_left, log, first_unfolded or {})
+    rec, images, record, rivals = _choose_by_size(photos, work, config, first, time_left, log, first_unfolded)
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
@@ -723,11 +723,11 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False) 
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
-    fewer :func:`nerfpipe.plugins.unfold.view_conflicts` than ``MIN_CONFLICTS``): only the photos that rival places otherwise, not those it
-    leaves out (23 of colmap_mouse's photos, session 61: unfolded at 1,024 px, 21 registered, 19 of them right; at
-    640 px 12, 10 of them placed alike: the 10 alone trained to 20.62 dB, `--time-budget 180`). Two independent
-    mappings rarely fold the same block the same way: in three runs of a 23-photo folder of colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model
-    of all 56 photos) the chosen reconstructions held 11, 10 and 11 right photos of 23; the photos the other size
+    fewer :func:`nerfpipe.plugins.unfold.view_conflicts` than ``MIN_CONFLICTS``): only the photos that rival places
+    otherwise, not those it leaves out (23 of colmap_mouse's photos, session 61: unfolded at 1,024 px, 21 registered,
+    19 of them right; at 640 px 12, 10 of them placed alike: the 10 alone trained to 20.62 dB, `--time-budget 180`).
+    Two independent mappings rarely fold the same block the same way: in three runs of a 23-photo folder of
+    colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model of all 56 photos) the chosen reconstructions held 11, 10 and 11 right photos of 23; the photos the other size
     placed alike were 10, 10 and 17, the first two all mutually consistent (within 0.4 and 0.6 degrees), the third 10
     of 17 (both sizes folded alike there: no worse than before). Returns what was kept, or None where nothing was."""
     if not rivals:

@@ -184,11 +184,13 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS, 
     record: dict = {"conflicts": len(conflicts), "registered": rec.num_reg_images(), "conflicts_left": len(conflicts)}
     if len(conflicts) < MIN_CONFLICTS:
         return rec, record
-    best, fewest, current, source, tried = rec, len(conflicts), rec, database, []
+    best, current, source, remaining, tried = rec, rec, database, dict(pairs), []
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     for k in range(rounds):
-        drop = pairs_supporting(current, verified_pairs(source), weak)
+        drop = pairs_supporting(current, remaining, weak)
+        dropped = set(drop)
+        remaining = {key: value for key, value in remaining.items() if key not in dropped}  # the copy's pairs
         copy = work / f"round{k}.db"
         shutil.copyfile(source, copy)
         delete_pairs(copy, drop)
@@ -196,19 +198,18 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS, 
         if other is None:
             break
         left = view_conflicts(other, pairs)
-        tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left)})
-        moved = not same_poses(other, rec)
-        tried[-1]["moved"] = moved
-        if not left and 3 * other.num_reg_images() >= rec.num_reg_images():
-            best, fewest = other, len(left)
-            tried[-1]["kept"] = True
+        tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left),
+                      "moved": not same_poses(other, rec)})  # fmt: skip
         if not left:
+            if 3 * other.num_reg_images() >= rec.num_reg_images():
+                best = other
+                tried[-1]["kept"] = True
             break
         current, source = other, copy
     record["rounds"] = tried
     record["kept"] = best is not rec
-    record["conflicts_left"] = fewest
     if record["kept"]:  # a capture with repeated structure: a photo or two may still sit where their matches say it is not
+        record["conflicts_left"] = 0
         from nerfpipe.plugins.sfm import keep_registered
 
         wrong = misplaced(best, pairs)
