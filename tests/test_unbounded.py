@@ -97,8 +97,8 @@ def test_background_field_learns_a_wall_behind_the_box():
     assert float(out.acc.mean()) > 0.95
 
 
-def _model(num_images=4, **kw):
-    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=num_images, pixels_per_image=100, unbounded=True, focal_spread=1.0)
+def _model(num_images=4, focal_spread=1.0, **kw):
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=num_images, pixels_per_image=100, unbounded=True, focal_spread=focal_spread)
     return FastConfig(preset="small", **kw).setup(info)
 
 
@@ -110,6 +110,7 @@ def test_real_capture_defaults_and_synthetic_defaults():
     synthetic = FastConfig(preset="small").setup(SceneInfo(**info, has_alpha=True))
     on_black = FastConfig(preset="small").setup(SceneInfo(**info))  # e.g. the CS180 lego: no alpha, no points
     assert real.behind is not None and real.appearance is not None
+    assert real.sky is not None and real.sky.shape == (4, 16, 32, 3) and session.sky is None  # the sky residual: photo collections
     assert synthetic.behind is None and synthetic.appearance is None
     assert on_black.behind is None and on_black.appearance is None
 
@@ -569,7 +570,8 @@ def test_image_codes_learn_each_photographs_sky_and_a_held_out_view_fits_its_own
     from nerfpipe.training.evaluation import appearance_fitted_view
 
     torch.manual_seed(0)
-    model = _model(num_images=2, background_field=False, appearance_fit_steps=80)
+    model = _model(num_images=2, background_field=False, appearance_fit_steps=80, sky_residual=0)  # the codes alone (the
+    # per-image sky residual would take part of each sky, which a held-out view's fit cannot then reproduce)
     assert model.image_codes is not None and model.image_codes.shape == (2, 8)
 
     def sky(rays):
@@ -842,3 +844,57 @@ def test_the_field_in_front_of_the_box_is_read_where_a_capture_has_many_photogra
     assert _model(num_images=4, behind=BackgroundFieldConfig(front=True)).front
     assert not _model(num_images=FRONT_MIN_IMAGES, background_field=False).front
     assert _model(num_images=FRONT_MIN_IMAGES).stats()["behind_front"] == 1.0
+
+
+def test_sky_residual_is_each_images_bilinear_texture_over_directions_zero_mean_and_off_outside_training():
+    """The per-image sky residual (``sky_residual``): the bilinear read of each ray's image's texture (zero-mean over
+    the images) at its direction's equirectangular coordinates, against ``grid_sample`` (border padding) as the
+    reference, values and gradients; a texture the same for every image reads as zero; evaluation renders without it."""
+    model = _model(sky_residual=4)
+    model.train()
+    rays = _rays(96, 5)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        model.sky.copy_(torch.randn(model.sky.shape, generator=g))
+    got = model._sky_residual(rays)
+    got.backward(torch.ones_like(got))
+    grad = model.sky.grad.clone()
+    sky = model.sky.detach().clone().requires_grad_(True)
+    n, rows, cols, _ = sky.shape
+    table = (sky - sky.mean(0, keepdim=True)).permute(0, 3, 1, 2)  # [images, 3, rows, cols]
+    d = rays.directions
+    u = (torch.atan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5) * cols - 0.5
+    v = torch.acos(d[:, 2]) / math.pi * rows - 0.5
+    grid = torch.stack([(2 * u + 1) / cols - 1, (2 * v + 1) / rows - 1], dim=-1)
+    want = torch.stack([torch.nn.functional.grid_sample(table[int(c)][None], grid[i].view(1, 1, 1, 2), align_corners=False,
+                                                        padding_mode="border")[0, :, 0, 0] for i, c in enumerate(rays.cam_idx)])
+    torch.testing.assert_close(got.detach(), want.detach(), atol=1e-5, rtol=0)
+    want.backward(torch.ones_like(want))
+    torch.testing.assert_close(grad, sky.grad, atol=1e-5, rtol=0)
+    with torch.no_grad():
+        model.sky.copy_(torch.randn(1, rows, cols, 3, generator=g).expand(n, -1, -1, -1))
+    torch.testing.assert_close(model._sky_residual(rays), torch.zeros(96, 3), atol=1e-6, rtol=0)
+    assert any(model.sky is p for group in model.param_groups() for p in group["params"])
+    assert _model(focal_spread=0.0).sky is None and _model(sky_residual=0).sky is None  # one camera's session, or off
+    with torch.no_grad():
+        model.sky.copy_(torch.randn(model.sky.shape, generator=g))
+    trained = model.get_outputs(rays, torch.zeros(96, 3)).rgb
+    with torch.no_grad():
+        model.sky.zero_()
+        untextured = model.get_outputs(rays, torch.zeros(96, 3)).rgb
+        model.sky.copy_(torch.randn(model.sky.shape, generator=g))
+    assert not torch.allclose(trained, untextured, atol=1e-3)  # in training, each image's residual
+    model.eval()
+    with torch.no_grad():
+        evaluated = model.get_outputs(rays, torch.zeros(96, 3)).rgb
+        model.sky.zero_()
+        plain = model.get_outputs(rays, torch.zeros(96, 3)).rgb
+    torch.testing.assert_close(evaluated, plain)  # novel views: the mean (zero)
+
+
+def test_a_checkpoint_from_before_the_sky_residual_loads_without_it():
+    state = {k: v for k, v in _model(sky_residual=0).state_dict().items()}
+    model = _model()
+    assert model.sky is not None
+    model.load_state_dict(state)
+    assert model.sky is None and "sky" not in model.state_dict()

@@ -81,6 +81,18 @@ def auto_preset(info: SceneInfo) -> str:
 APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
+SKY_RESIDUAL_ROWS = 16
+"""``FastConfig.sky_residual`` of photo collections (the per-image colour corrections on): a cell of 11 degrees, a
+photograph's sky a few cells wide. Their sky changes from photograph to photograph (clouds, haze); without a place for
+that, the box filled with cloud floaters that every novel view shows over its own sky. photos_sacre_coeur (session 62;
+``python -m benchmarks.side_by_side SFM --variants "base:" "sky32:sky_residual=32" "sky16:sky_residual=16" --marks 300
+600 900 --eval-views 2 --eval-max-size 400 --eval-supersample 1 --chunk 50``, the sfm folders of two ``nerfpipe run``s),
+right halves appearance fitted, none / 32 / 16 rows: 14.99 / 15.77 / **15.87** dB after 300 steps, 15.86 / 15.31 /
+15.76 after 600, 15.83 / 14.85 / 15.81 after 900 (the other folder, none / 32: 14.29 / 15.84 after 300, 14.33 / 14.41
+after 600), at 0.74-0.83x the seconds per step (13-23 samples per ray against 18-28: less fog in the box), the orbit's
+sky clearer of cloud floaters with 32 rows than 16, and with 16 than none. End to end (``nerfpipe run SFM --time-budget
+270``, the two codes at once, one thread each): see the README's session-62 row."""
+
 DENSITY_LEVELS_REAL = 2
 """``FastConfig.density_levels`` of real captures: their density from the two coarsest levels (32 and 64 vertices along the
 box), their colour from every level (to 256 on colmap_mouse). On colmap_mouse (side by side, 7 held-out views at 400
@@ -564,6 +576,13 @@ class FastConfig:
     training: camera refinement, as nerfacto's camera optimiser. Off: on colmap_mouse (7 held-out views after
     600 steps, ``python -m benchmarks.side_by_side``) it scored 24.03 dB (``pose_lr`` 1e-3) and 24.00 dB (3e-4)
     against 24.30 dB without; COLMAP's poses of one phone session are already as good as the field can use."""
+    sky_residual: "int | None" = None
+    """Rows of a per-image colour residual over the sphere of directions (twice as many columns; 0: off), added in
+    training to what the direction-only background shows behind everything: each training photograph's clouds and
+    haze in its own sky, zero-mean over the images (novel views and renders see the mean: none), instead of as fog in
+    the box. None: :data:`SKY_RESIDUAL_ROWS` where the per-image colour corrections are on (photo collections), else 0."""
+    sky_residual_lr: float = 1e-2
+    """Adam learning rate of :attr:`sky_residual`'s textures."""
     pose_lr: float = 1e-3
     """Adam learning rate of the per-image pose corrections (radians and scene units)."""
     depth_weight: float = 0.1
@@ -621,6 +640,8 @@ class FastConfig:
             raise ValueError(f"unknown preset {self.preset!r}; choose from auto, {', '.join(PRESETS)}")
         if self.adam_beta2 is not None and not 0.0 <= self.adam_beta2 < 1.0:
             raise ValueError(f"adam_beta2 must lie in [0, 1), got {self.adam_beta2}")
+        if self.sky_residual is not None and not (self.sky_residual == 0 or self.sky_residual >= 2):
+            raise ValueError(f"sky_residual must be 0 (off) or at least 2 rows, got {self.sky_residual}")
 
     def setup(self, scene_info: SceneInfo) -> "FastModel":
         return FastModel(self, scene_info)
@@ -722,6 +743,8 @@ class FastModel(Model):
         code_dim = cfg.appearance_dim if use_app else 0
         self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
         self.pose_deltas = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 6)) if cfg.pose_refine else None
+        rows = (SKY_RESIDUAL_ROWS if use_app else 0) if cfg.sky_residual is None else cfg.sky_residual
+        self.sky = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), rows, 2 * rows, 3)) if rows > 0 else None
         self._view_appearance: "Tensor | None" = None
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
@@ -868,6 +891,8 @@ class FastModel(Model):
         if self.background is not None:
             head_in = dir_code if codes is None else torch.cat([dir_code, codes], dim=-1)
             bg = (bg + self.background(head_in)).clamp(0.0, 1.0)
+        if self.sky is not None and self.training:
+            bg = (bg + self._sky_residual(rays)).clamp(0.0, 1.0)
         beyond = self._step >= self.cfg.behind_from or not self.training
         if self.behind is not None and beyond:  # the table (the plane's texture) at its distance among what lies behind the box
             layer = self.plane.layer(rays.origins, rays.directions, codes) if self.plane is not None else None
@@ -1029,6 +1054,23 @@ class FastModel(Model):
         rot = torch.linalg.matrix_exp(skew)[rays.cam_idx.reshape(-1)]
         directions = (rot @ rays.directions[:, :, None])[:, :, 0]
         return replace(rays, origins=rays.origins + delta[rays.cam_idx.reshape(-1), 3:], directions=directions)
+
+    def _sky_residual(self, rays: RayBundle) -> Float[Tensor, "num_rays 3"]:
+        """Each training ray's image's residual (:attr:`FastConfig.sky_residual`) at its direction, bilinear over an
+        equirectangular grid about the world's z axis."""
+        from nerfpipe.functional.gather import weighted_gather
+
+        n, rows, cols, _ = self.sky.shape
+        table = (self.sky - self.sky.mean(0, keepdim=True)).reshape(-1, 3)
+        d = rays.directions.reshape(-1, 3)
+        u = (torch.atan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5) * cols - 0.5
+        v = torch.acos(d[:, 2].clamp(-1.0, 1.0)) / math.pi * rows - 0.5
+        u0, v0 = u.detach().floor().clamp(0, cols - 2), v.detach().floor().clamp(0, rows - 2)
+        fu, fv = (u - u0).clamp(0, 1), (v - v0).clamp(0, 1)
+        base = rays.cam_idx.reshape(-1).long() * rows * cols + v0.long() * cols + u0.long()
+        idx = torch.stack([base, base + 1, base + cols, base + cols + 1], dim=-1)
+        w = torch.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], dim=-1).detach()
+        return weighted_gather(table, idx, w.to(table.dtype))
 
     def _image_codes(self, rays: RayBundle) -> "Float[Tensor, 'num_rays code_dim'] | None":
         """Each ray's image code: its training image's (zero-mean over the images) in training, else a fitted
@@ -1253,6 +1295,8 @@ class FastModel(Model):
             groups[1]["params"].append(self.image_codes)
         if self.pose_deltas is not None:
             groups.append({"params": [self.pose_deltas], "lr": self.cfg.pose_lr, "eps": 1e-15})
+        if self.sky is not None:
+            groups.append({"params": [self.sky], "lr": self.cfg.sky_residual_lr, "eps": 1e-15})
         return groups
 
     def stats(self) -> "dict[str, float]":
@@ -1299,6 +1343,8 @@ class FastModel(Model):
                 self.background = self._background_head().to(device)
             if self.behind is not None:
                 self.behind = BackgroundField(self.cfg.behind, self.behind.aabb).to(device)
+        if self.sky is not None and prefix + "sky" not in state_dict:  # from before the sky residual (off in renders)
+            self.sky = None
         steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
         self._sparse_pending = bool(state_dict.setdefault(prefix + "sparse_pending", torch.tensor(False)))  # once per load
         # checkpoints from before density_levels: density from every level
