@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+from nerfpipe.functional.metrics import psnr_from_mse
 from nerfpipe.util.typing import Bool, Float
 
 
@@ -45,7 +46,7 @@ def sky_mask(photo: Float[np.ndarray, "H W 3"], blue_margin: float = 0.05, brigh
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10.0 * np.log10(max(float(((a - b) ** 2).mean()), 1e-12)))
+    return psnr_from_mse(float(((a - b) ** 2).mean()))
 
 
 def _blurred_within(image: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:

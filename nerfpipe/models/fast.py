@@ -1060,7 +1060,7 @@ class FastModel(Model):
         equirectangular grid about the world's z axis."""
         from nerfpipe.functional.gather import weighted_gather
 
-        n, rows, cols, _ = self.sky.shape
+        _, rows, cols, _ = self.sky.shape
         table = (self.sky - self.sky.mean(0, keepdim=True)).reshape(-1, 3)
         d = rays.directions.reshape(-1, 3)
         u = (torch.atan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5) * cols - 0.5
