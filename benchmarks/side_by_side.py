@@ -54,7 +54,7 @@ class SideBySideConfig:
     log: "Path | None" = None
     """Append the JSON lines to this file."""
     pictures: "Path | None" = None
-    """After the last mark, write this PNG: one row per variant of four orbit views (around the scene box at the
+    """After the last mark, write this PNG: two rows (colour, depth) per variant of four orbit views (around the scene box at the
     training cameras' distance and elevation), longer side ``eval_max_size``, to see fog that PSNR hides."""
     average_every_mark: bool = False
     """Also score the parameter average at every mark, not only after the last (on a copy of the model, its occupancy
@@ -156,22 +156,28 @@ def averaged_psnr(trainer, views: int) -> "float | None":
 
 
 def write_orbit_strips(path: Path, scene, trainers: list, max_size: "int | None", views: int = 4) -> None:
-    """One row per trainer of ``views`` orbit views (:func:`nerfpipe.data.orbit.path_cameras`) as a PNG."""
+    """Two rows per trainer of ``views`` orbit views (:func:`nerfpipe.data.orbit.path_cameras`) as a PNG: colour, then
+    depth coloured as the render stage's depth orbit (one range for all variants: pits and fog compare across rows)."""
     import imageio.v3 as iio
     import numpy as np
 
     from nerfpipe.data.background import background_colors
+    from nerfpipe.outputs.colormap import colorize_depth, depth_range
     from nerfpipe.outputs.render import render_cameras, to_uint8
     from nerfpipe.util.atomic import write_bytes
 
     cams = path_cameras(scene, "orbit", views)
     if max_size:
         cams = cams.capped(max_size)
-    rows = []
+    renders = []
     for trainer in trainers:
         device = next(trainer.model.parameters()).device
-        rendered = render_cameras(trainer.model, cams.to(device), background=background_colors(trainer.eval_bg, 1)[0])
+        renders.append(render_cameras(trainer.model, cams.to(device), background=background_colors(trainer.eval_bg, 1)[0]))
+    lo, hi = depth_range([v.depth for r in renders for v in r], [v.acc for r in renders for v in r])
+    rows = []
+    for rendered in renders:
         rows.append(np.concatenate([to_uint8(v.rgb) for v in rendered], axis=1))
+        rows.append(np.concatenate([colorize_depth(v.depth, v.acc, lo, hi) for v in rendered], axis=1))
     write_bytes(path, iio.imwrite("<bytes>", np.concatenate(rows, axis=0), extension=".png"))
 
 

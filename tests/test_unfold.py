@@ -134,3 +134,42 @@ def test_a_lone_misplaced_photo_is_the_one_whose_matches_disagree(scene_path):
     assert unfold.misplaced(rec, pairs) == []
     names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
     assert unfold.misplaced(_folded(rec, {names[7]}), pairs) == [names[7]]
+
+
+def test_a_reconstruction_without_a_fold_loses_only_the_photos_whose_matches_disagree(scene_path, tmp_path, monkeypatch):
+    """Where :func:`unfold.unfold` finds no fold, it maps nothing again, but a photo placed where its matches disagree
+    (one camera turned 80 degrees) and that sees few points for its matches (as mapping leaves a misplaced photo: most
+    of its observations taken away) is deregistered, with the points only it saw; COLMAP's own model loses none, and a
+    turned photo that keeps its points stays (a right photo whose matches are mostly wrong looks alike)."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    monkeypatch.setattr(unfold, "verified_pairs", lambda database: pairs)
+    monkeypatch.setattr(unfold, "view_conflicts", lambda rec, pairs: [])  # no fold seen
+    database = tmp_path / "database.db"
+    database.write_bytes(b"")
+    no_remap = lambda path: pytest.fail("no fold: no mapping")  # noqa: E731
+    matches: dict = {}
+    for (a, b), (xa, _) in pairs.items():
+        for name in (a, b):
+            matches[name] = matches.get(name, 0) + len(xa)
+    per_match = min(image.num_points3D / matches[Path(image.name).name] for image in rec.images.values() if image.has_pose)
+    # matches from the tracks count every pair of a long track: fewer points per match than verified matches give
+    monkeypatch.setattr(unfold, "MISPLACED_POINTS_PER_MATCH", 0.5 * per_match)
+    kept, record = unfold.unfold(rec, database, tmp_path / "work", remap=no_remap)
+    assert kept is rec and "misplaced" not in record and rec.num_reg_images() == len(names)
+    turned = _folded(_model(scene_path), {names[7]})
+    kept, record = unfold.unfold(turned, database, tmp_path / "work", remap=no_remap)
+    assert "misplaced" not in record and kept.num_reg_images() == len(names)  # its points are still many
+    image = next(i for i in turned.images.values() if Path(i.name).name == names[7])
+    seen = [k for k, p in enumerate(image.points2D) if p.has_point3D()]
+    for k in seen[10:]:  # ten points left of its hundreds
+        turned.delete_observation(image.image_id, k)
+    points = turned.num_points3D()
+    kept, record = unfold.unfold(turned, database, tmp_path / "work", remap=no_remap)
+    assert kept is turned and record["misplaced"] == [names[7]] and record["conflicts"] == 0
+    assert kept.num_reg_images() == len(names) - 1 and names[7] not in {Path(i.name).name for i in kept.images.values() if i.has_pose}
+    assert kept.num_points3D() <= points
+    block = set(names[: len(names) // 3])  # a third turned: a fold's block, not a photo or two, is left to the other tests
+    kept, record = unfold.unfold(_folded(_model(scene_path), block), database, tmp_path / "work", remap=no_remap)
+    assert "misplaced" not in record and kept.num_reg_images() == len(names)

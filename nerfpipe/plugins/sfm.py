@@ -338,9 +338,15 @@ def reconstruct(images: Path, work: Path, config: SfmConfig, info, time_left: "f
             drop_weak_pairs(db, min_inliers)
         seconds["matching"], t = time.monotonic() - t, time.monotonic()
         task = bar.add_task("registered images", total=n)
+        registered = [0]  # registrations counted, capped at the photos: a mapping that starts a second model registers again
+
+        def advance(k: int) -> None:
+            registered[0] += k
+            bar.update(task, completed=min(registered[0], n))
+
         models = pycolmap.incremental_mapping(db, images, work / "sparse", options=mapping,
-                                              initial_image_pair_callback=lambda: bar.advance(task, 2),
-                                              next_image_callback=lambda: bar.advance(task, 1))  # fmt: skip
+                                              initial_image_pair_callback=lambda: advance(2),
+                                              next_image_callback=lambda: advance(1))  # fmt: skip
         seconds["mapping"] = time.monotonic() - t
     if not models:
         raise NerfpipeError("structure from motion registered no images (too few matches between the photos)", images)
