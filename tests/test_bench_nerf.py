@@ -104,9 +104,17 @@ def test_side_by_side_interleaves_variants_and_reports_size(scene_path, tmp_path
     assert parse_variant("compact:") == ("compact", "auto", (), {})
     assert parse_variant("s:train.train_max_size=480 tv_weight=0.1") == ("s", "auto", ("tv_weight=0.1",), {"train_max_size": 480})
     rows = main(SideBySideConfig(tiny_lego(scene_path, tmp_path), variants=("dense:preset='small' levels=(8,16)", "compact:preset='compact' log2_hashmap_size=9"),
-                                 marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads()))
+                                 marks=(3,), chunk=2, eval_views=1, rays_per_step=64, threads=torch.get_num_threads(),
+                                 eval_max_size=24, pictures=tmp_path / "orbits.png"))
     assert [r["name"] for r in rows] == ["dense", "compact"] and all(r["step"] == 3 and r["s_per_step"] > 0 for r in rows)
     assert rows[1]["model_mb"] < rows[0]["model_mb"]  # hashed into 512-row tables
+    import imageio.v3 as iio
+
+    picture = iio.imread(tmp_path / "orbits.png")  # colour and depth rows of four orbit views per variant
+    h = picture.shape[0] // 4  # the tiny scene's square views
+    assert picture.shape[0] == 4 * h and picture.shape[1] == 4 * h and h <= 24
+    colour, depth = picture[:h], picture[h : 2 * h]
+    assert not np.array_equal(colour, depth)
 
 
 def test_step_profile_times_each_mode_and_batch(scene_path, tmp_path, device):
