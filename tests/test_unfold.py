@@ -31,6 +31,18 @@ def _track_pairs(rec) -> dict:
     return {k: (np.array([x for x, _ in v]), np.array([y for _, y in v])) for k, v in points.items()}
 
 
+def _points_per_match_as_verified(monkeypatch, rec, pairs: dict) -> None:
+    """Matches from the tracks count every pair of a long track: fewer points per match than verified matches give
+    (every photo of COLMAP's model under :data:`unfold.WEAK_POINTS_PER_MATCH`). The bound set to half the fewest of
+    the model's photos, as the right photos of real reconstructions stand to it."""
+    matches: dict = {}
+    for (a, b), (xa, _) in pairs.items():
+        for name in (a, b):
+            matches[name] = matches.get(name, 0) + len(xa)
+    per_match = min(image.num_points3D / matches[Path(image.name).name] for image in rec.images.values() if image.has_pose)
+    monkeypatch.setattr(unfold, "WEAK_POINTS_PER_MATCH", 0.5 * per_match)
+
+
 def _folded(rec, block: "set[str]", degrees: float = 80.0):
     """``rec`` with the cameras of ``block`` turned ``degrees`` about the vertical through the points' median (the
     world turned under them): a block placed elsewhere, right in itself."""
@@ -98,6 +110,7 @@ def test_unfold_keeps_a_remapped_reconstruction_only_without_conflicts_and_with_
     pairs = _track_pairs(rec)
     names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
     monkeypatch.setattr(unfold, "verified_pairs", lambda database: pairs)
+    _points_per_match_as_verified(monkeypatch, rec, pairs)
     deleted = []
     monkeypatch.setattr(unfold, "delete_pairs", lambda database, drop: deleted.append(list(drop)))
     database = tmp_path / "database.db"
@@ -149,13 +162,7 @@ def test_a_reconstruction_without_a_fold_loses_only_the_photos_whose_matches_dis
     database = tmp_path / "database.db"
     database.write_bytes(b"")
     no_remap = lambda path: pytest.fail("no fold: no mapping")  # noqa: E731
-    matches: dict = {}
-    for (a, b), (xa, _) in pairs.items():
-        for name in (a, b):
-            matches[name] = matches.get(name, 0) + len(xa)
-    per_match = min(image.num_points3D / matches[Path(image.name).name] for image in rec.images.values() if image.has_pose)
-    # matches from the tracks count every pair of a long track: fewer points per match than verified matches give
-    monkeypatch.setattr(unfold, "MISPLACED_POINTS_PER_MATCH", 0.5 * per_match)
+    _points_per_match_as_verified(monkeypatch, rec, pairs)
     kept, record = unfold.unfold(rec, database, tmp_path / "work", remap=no_remap)
     assert kept is rec and "misplaced" not in record and rec.num_reg_images() == len(names)
     turned = _folded(_model(scene_path), {names[7]})
@@ -173,3 +180,46 @@ def test_a_reconstruction_without_a_fold_loses_only_the_photos_whose_matches_dis
     block = set(names[: len(names) // 3])  # a third turned: a fold's block, not a photo or two, is left to the other tests
     kept, record = unfold.unfold(_folded(_model(scene_path), block), database, tmp_path / "work", remap=no_remap)
     assert "misplaced" not in record and kept.num_reg_images() == len(names)
+
+
+def test_conflicts_are_explained_only_by_photos_attached_by_few_points(scene_path, monkeypatch):
+    """:func:`unfold.conflicts_explained`: conflicts that all involve a photo the reconstruction attaches by few points
+    (a turned camera whose observations mapping mostly left out) name it; one conflict between two well attached photos,
+    or a turned photo that keeps its points, leaves them unexplained."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    _points_per_match_as_verified(monkeypatch, rec, pairs)
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    turned = _folded(_model(scene_path), {names[7]})
+    conflicts = [(names[7], names[20]), (names[3], names[7])]
+    assert unfold.conflicts_explained(turned, pairs, conflicts, unfold.WEAK_POINTS_PER_MATCH) == []  # its points still many
+    image = next(i for i in turned.images.values() if Path(i.name).name == names[7])
+    for k in [k for k, p in enumerate(image.points2D) if p.has_point3D()][10:]:
+        turned.delete_observation(image.image_id, k)
+    assert unfold.conflicts_explained(turned, pairs, conflicts, unfold.WEAK_POINTS_PER_MATCH) == [names[7]]
+    both = conflicts + [(names[20], names[30])]
+    assert unfold.conflicts_explained(turned, pairs, both, unfold.WEAK_POINTS_PER_MATCH) == []
+    evidence = unfold.placement_evidence(turned, pairs)
+    assert unfold.weakly_placed(evidence, unfold.WEAK_SHARE, unfold.WEAK_POINTS_PER_MATCH) == [names[7]]
+    assert evidence[names[7]][0] < 0.5 < min(share for name, (share, _) in evidence.items() if name != names[7])
+
+
+def test_a_remap_whose_conflicts_are_one_weakly_attached_photo_is_kept_without_it(scene_path, tmp_path, monkeypatch):
+    """A round of :func:`unfold.unfold` whose remap leaves conflicts, all with one photo attached by few points (turned
+    and most of its observations taken away), keeps that remap without the photo instead of mapping again."""
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    monkeypatch.setattr(unfold, "verified_pairs", lambda database: pairs)
+    monkeypatch.setattr(unfold, "delete_pairs", lambda database, drop: None)
+    _points_per_match_as_verified(monkeypatch, rec, pairs)
+    database = tmp_path / "database.db"
+    database.write_bytes(b"")
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    remapped = _folded(_model(scene_path), {names[20]})
+    assert unfold.view_conflicts(remapped, pairs) and all(names[20] in c for c in unfold.view_conflicts(remapped, pairs))
+    image = next(i for i in remapped.images.values() if Path(i.name).name == names[20])
+    for k in [k for k, p in enumerate(image.points2D) if p.has_point3D()][10:]:
+        remapped.delete_observation(image.image_id, k)
+    kept, record = unfold.unfold(_folded(_model(scene_path), set(names[::2])), database, tmp_path / "work", remap=lambda path: remapped)
+    assert kept is remapped and record["kept"] and record["rounds"][0]["weakly_attached"] == [names[20]]
+    assert kept.num_reg_images() == len(names) - 1 and unfold.view_conflicts(kept, pairs) == []
