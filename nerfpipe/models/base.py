@@ -54,6 +54,10 @@ class SceneInfo:
     diagonals: near 0 for one camera (0.05 on colmap_mouse, whose COLMAP model has one camera per image),
     large for a collection of photographs from several cameras or zoom settings (1.5 on the Sacre Coeur
     photos)."""
+    exposure_spread: float = 0.0
+    """Spread (standard deviation) of the training photos' log exposure gains measured on the sparse points' tracks
+    (:func:`nerfpipe.data.exposure.exposure_gains`; 0: not measured): about 0.2 for one phone's session under steady
+    light (colmap_mouse), 0.42 for the Sacre Coeur photo collection."""
     arc: float = 0.0
     """The azimuth arc (radians) the training cameras cover about the scene box's centre, seen from above
     (:func:`nerfpipe.data.orbit.camera_arc`): 2 pi for an object photographed all round (no gap wider than

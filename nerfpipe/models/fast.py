@@ -81,6 +81,42 @@ def auto_preset(info: SceneInfo) -> str:
 APPEARANCE_FOCAL_SPREAD = 0.3
 """Focal-length spread above which a real capture counts as a photo collection (colour corrections on)."""
 
+APPEARANCE_EXPOSURE_SPREAD = 0.25
+"""Exposure spread (``SceneInfo.exposure_spread``, the standard deviation of the training photos' log gains) above
+which one camera's session gets per-image colour corrections too, the affine maps alone (no latent codes, no sky
+residual): its photos differ in exposure (a phone's auto-exposure turned by a window or a lamp in view), which a field
+without them explains with fog. Measured (session 65, :mod:`nerfpipe.data.exposure`, training photos): colmap_mouse
+0.210, the same photos with each one's linear light scaled by exp(N(0, 0.25)) / exp(N(0, 0.4)) 0.262 / 0.354 (the
+scales recovered photo by photo: correlation 0.99), photos_sceaux_castle's and the fox's sfm folders 0.237 / 0.223 (all
+photos), a 23-photo cut of colmap_mouse 0.135, photos_sacre_coeur 0.418 (a collection: on by its focal lengths anyway).
+Side by side at equal steps (``python -m benchmarks.side_by_side MOUSE --variants "base:" "aff0:appearance=True
+appearance_dim=0 sky_residual=0" --marks 600 --eval-views 7 --eval-max-size 400 --eval-supersample 1 --chunk 50
+--pictures P``), without / with the affine maps after 600 steps, the mean correction (``val_psnr``) and the held-out
+views' corrections fitted on their left halves (the NeRF-W protocol; without: an affine colour map fitted there):
+0.354: 17.28 / **19.55** dB and 21.94 / **24.14** dB, floaters over the table beside the mouse in the first's orbit and
+depth pictures, few in the second's; 0.262: 20.36 / **21.11** and 23.17 / **24.14**, the same floaters; colmap_mouse
+itself (0.210): **24.88** / 23.96 and 24.16 / 24.00, hence a threshold above it. The codes and the sky residual of
+photo collections cost a single session dearly: the fields behind the box and of the table took each photo's light and
+their mean rendered a washed-out table: all on (``appearance=True``) 19.16 / 21.06 dB at 0.354 and 20.91 / 20.59 on
+colmap_mouse, the affine maps with the sky residual 19.33 / 21.66 and 21.70 / 21.46. See the README's session-65 row."""
+
+
+def photo_collection(info: SceneInfo) -> bool:
+    """A real capture of photographs from several cameras or zoom settings (:data:`APPEARANCE_FOCAL_SPREAD`): per-image
+    colour corrections, latent codes for the surroundings and each photograph's own sky by default."""
+    return info.unbounded and info.focal_spread > APPEARANCE_FOCAL_SPREAD
+
+
+def appearance_by_default(info: SceneInfo) -> bool:
+    """Whether a scene gets the per-image colour corrections by default (``FastConfig.appearance``): a photo collection
+    (:func:`photo_collection`) or a real capture whose photos differ in exposure (:data:`APPEARANCE_EXPOSURE_SPREAD`;
+    the affine corrections alone there)."""
+    return photo_collection(info) or (info.unbounded and info.exposure_spread > APPEARANCE_EXPOSURE_SPREAD)
+
+
+APPEARANCE_DIM = 8
+"""``FastConfig.appearance_dim`` of photo collections."""
+
 SKY_RESIDUAL_ROWS = 16
 """``FastConfig.sky_residual`` of photo collections (the per-image colour corrections on): a cell of 11 degrees, a
 photograph's sky a few cells wide. Their sky changes from photograph to photograph (clouds, haze); without a place for
@@ -550,15 +586,17 @@ class FastConfig:
     """Per-image colour correction (an affine map of RGB per training image, zero-mean over the images,
     so evaluation and novel views use the mean: the identity). Default: for real captures that are
     collections of photographs from several cameras or zoom settings (``SceneInfo.focal_spread`` above
-    :data:`APPEARANCE_FOCAL_SPREAD`), where light and exposure vary; off for one camera's session, where it
-    measured 0.1-0.3 dB lower on colmap_mouse's held-out views."""
+    :data:`APPEARANCE_FOCAL_SPREAD`), where light and exposure vary, and for sessions whose photos differ in exposure
+    (``SceneInfo.exposure_spread`` above :data:`APPEARANCE_EXPOSURE_SPREAD`); off for one camera's session under
+    steady light, where it measured 0.1-0.3 dB lower on colmap_mouse's held-out views (:func:`appearance_by_default`)."""
     appearance_lr: float = 1e-3
     """Adam learning rate of the per-image colour corrections."""
-    appearance_dim: int = 8
+    appearance_dim: "int | None" = None
     """With the colour corrections on: size of a per-image latent code (GLO, as in NeRF-W) given to the colour
     of what lies outside the object region (the direction-only background and the field behind the box), so
     each photograph's sky and surroundings take its own light and weather without fog in the box; zero-mean
-    over the images, so novel views get the mean (0: off). photos_sacre_coeur (8 training photos, 2 held out,
+    over the images, so novel views get the mean (0: off). Default: :data:`APPEARANCE_DIM` for photo collections
+    (:func:`photo_collection`), 0 for one camera's session (:data:`APPEARANCE_EXPOSURE_SPREAD`). photos_sacre_coeur (8 training photos, 2 held out,
     ``python -m benchmarks.side_by_side``), after 300 / 600 steps, with 8 / without: right halves with the
     appearance fitted 14.74 / 14.33 and 14.69 / 14.35 dB, with an affine colour map fitted 14.88 / 14.62 and
     14.82 / 14.63 dB; with the mean code 11.54 / 12.05 and 11.67 / 12.29 dB."""
@@ -580,7 +618,8 @@ class FastConfig:
     """Rows of a per-image colour residual over the sphere of directions (twice as many columns; 0: off), added in
     training to what the direction-only background shows behind everything: each training photograph's clouds and
     haze in its own sky, zero-mean over the images (novel views and renders see the mean: none), instead of as fog in
-    the box. None: :data:`SKY_RESIDUAL_ROWS` where the per-image colour corrections are on (photo collections), else 0."""
+    the box. None: :data:`SKY_RESIDUAL_ROWS` where the per-image colour corrections are on in a photo collection
+    (:func:`photo_collection`), else 0 (one camera's session: see :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
     sky_residual_lr: float = 1e-2
     """Adam learning rate of :attr:`sky_residual`'s textures."""
     pose_lr: float = 1e-3
@@ -642,6 +681,8 @@ class FastConfig:
             raise ValueError(f"adam_beta2 must lie in [0, 1), got {self.adam_beta2}")
         if self.sky_residual is not None and not (self.sky_residual == 0 or self.sky_residual >= 2):
             raise ValueError(f"sky_residual must be 0 (off) or at least 2 rows, got {self.sky_residual}")
+        if self.appearance_dim is not None and self.appearance_dim < 0:
+            raise ValueError(f"appearance_dim must be 0 (off) or more, got {self.appearance_dim}")
 
     def setup(self, scene_info: SceneInfo) -> "FastModel":
         return FastModel(self, scene_info)
@@ -649,7 +690,14 @@ class FastConfig:
     def for_checkpoint(self, state: dict, scene_info: SceneInfo) -> "FastConfig":
         """This config, or the one a checkpoint's ``state`` (a model state dict) was trained with where its preset has
         changed since (:data:`LEGACY_CAPACITY`): the finest level's table is not hashed as the preset now hashes it.
-        Runs written by an earlier nerfpipe then still render, mesh and score."""
+        Runs written by an earlier nerfpipe then still render, mesh and score. The colour corrections' default is the
+        checkpoint's (their rule reads the photos, :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
+        if self.appearance is None:  # what it was trained with, whatever the measurement says today (the photos not read)
+            self = replace(self, appearance="appearance" in state)
+        if self.appearance_dim is None:
+            self = replace(self, appearance_dim=state["image_codes"].shape[1] if "image_codes" in state else 0)
+        if self.sky_residual is None:
+            self = replace(self, sky_residual=state["sky"].shape[1] if "sky" in state else 0)
         cap = self.resolved(scene_info)
         legacy = LEGACY_CAPACITY.get(cap["preset"])
         if legacy is None or self.levels is not None or self.log2_hashmap_size is not None or not cap["log2_hashmap_size"]:
@@ -738,12 +786,15 @@ class FastModel(Model):
         self.register_buffer("density_levels", torch.tensor(self.field.density_levels))  # checkpoints keep what they were trained with
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
-        use_app = (real and info.focal_spread > APPEARANCE_FOCAL_SPREAD) if cfg.appearance is None else cfg.appearance
+        use_app = appearance_by_default(info) if cfg.appearance is None else cfg.appearance
+        self.exposure_spread = info.exposure_spread
+        """The training photos' exposure spread the model was built with (``metrics.json``; 0: not measured)."""
         self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
-        code_dim = cfg.appearance_dim if use_app else 0
+        collection = photo_collection(info)
+        code_dim = ((APPEARANCE_DIM if collection else 0) if cfg.appearance_dim is None else cfg.appearance_dim) if use_app else 0
         self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
         self.pose_deltas = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 6)) if cfg.pose_refine else None
-        rows = (SKY_RESIDUAL_ROWS if use_app else 0) if cfg.sky_residual is None else cfg.sky_residual
+        rows = (SKY_RESIDUAL_ROWS if use_app and collection else 0) if cfg.sky_residual is None else cfg.sky_residual
         self.sky = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), rows, 2 * rows, 3)) if rows > 0 else None
         self._view_appearance: "Tensor | None" = None
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
@@ -1312,6 +1363,8 @@ class FastModel(Model):
             evidence_sparsity_weight=float(self.evidence_sparsity_weight),
             support_texture=float(self.plane is not None),
             behind_front=float(self.front),
+            appearance=float(self.appearance is not None),
+            exposure_spread=self.exposure_spread,
             lr_batch_scale=self.lr_batch_scale,
         )
         return out

@@ -118,6 +118,10 @@ def run(config: TrainStageConfig, ctx: StageContext) -> "dict[str, object]":
         shutil.rmtree(out)
     ctx.log.info("train: %s, %s", config.model, "resuming from the checkpoint" if resume else "from scratch")
     trainer = Trainer(replace(trainer_cfg, resume=resume), scene, config.model, model_cfg, out)
+    spread = getattr(trainer.model, "exposure_spread", 0.0)
+    if spread:
+        ctx.log.info("train: the photos' exposure spreads %.2f (log gain std); per-image colour corrections %s", spread,
+                     "on" if getattr(trainer.model, "appearance", None) is not None else "off")
     from nerfpipe.viewer.training import train_watched
 
     metrics = train_watched(trainer, config.view, config.view_port)

@@ -32,6 +32,7 @@ import torch
 
 from nerfpipe.data.background import BACKGROUNDS, backgrounds
 from nerfpipe.data.cameras import Cameras
+from nerfpipe.data.exposure import exposure_gains, exposure_spread
 from nerfpipe.data.orbit import camera_arc
 from nerfpipe.data.scene import SceneData, check_images
 from nerfpipe.functional.gather import move_rows
@@ -324,17 +325,29 @@ class TrainerConfig:
         check_device(self.device)
 
 
-def scene_info(scene: SceneData, train_max_size: "int | None" = None) -> SceneInfo:
-    """What a model may know of ``scene`` when it is built, its training images at most ``train_max_size`` pixels on the longer side."""
+def scene_info(scene: SceneData, train_max_size: "int | None" = None, exposure: bool = False) -> SceneInfo:
+    """What a model may know of ``scene`` when it is built, its training images at most ``train_max_size`` pixels on the longer side.
+    ``exposure``: also measure the training photos' exposure spread on a real capture's tracks (:func:`exposure_spread_of`;
+    reads the photos, about a second per 50); a model rebuilt from a checkpoint needs none (its tensors say what it has)."""
     cams = scene.split_cameras("train").capped(train_max_size)
     pixels = int((cams.width * cams.height).max()) if len(cams) else 0
     rel = (cams.fx.double() / (cams.width.double() ** 2 + cams.height.double() ** 2).sqrt()).reshape(-1)
     q = torch.quantile(rel, torch.tensor([0.25, 0.5, 0.75], dtype=rel.dtype)) if len(rel) > 1 else None
     spread = float((q[2] - q[0]) / q[1]) if q is not None else 0.0
     return SceneInfo(aabb=scene.aabb, near=scene.near, far=scene.far, num_images=len(cams), pixels_per_image=pixels, has_alpha=scene.has_alpha,
-                     unbounded=scene.shows_surroundings, focal_spread=spread, arc=camera_arc(cams, scene.aabb.mean(0)),
+                     unbounded=scene.shows_surroundings, focal_spread=spread,
+                     exposure_spread=exposure_spread_of(scene) if exposure else 0.0, arc=camera_arc(cams, scene.aabb.mean(0)),
                      pixel_footprint=pixel_footprint(cams, scene.aabb), support_plane=support_plane_of(scene),
                      points=_box_points(scene))
+
+
+def exposure_spread_of(scene: SceneData) -> float:
+    """The spread of the training photos' log exposure gains (:func:`nerfpipe.data.exposure.exposure_gains`) on a real
+    capture with tracks; 0 for any other scene."""
+    if not scene.shows_surroundings or not scene.points.has_tracks or len(scene.splits["train"]) < 2:
+        return 0.0
+    gains = exposure_gains(scene.points, scene.images, len(scene.cameras), scene.splits["train"])
+    return exposure_spread(gains)
 
 
 def _box_points(scene: SceneData) -> "Float[Tensor, 'num_points 3'] | None":
@@ -469,7 +482,7 @@ class Trainer:
         require_all(evaluation.dependencies(cfg))
         self.model_name, self.model_config = model_name, model_config
         self.train_bg, self.eval_bg = backgrounds(cfg.background, scene.has_alpha, scene.shows_surroundings)
-        info = scene_info(scene, cfg.train_max_size)
+        info = scene_info(scene, cfg.train_max_size, exposure=True)
         model, init_rng = seeded_init(lambda: model_config.setup(info), cfg.seed)
         self.model: Model = model.to(cfg.device)
         if cfg.rays_per_step is None:  # likewise the batch chosen by the device and the scene
