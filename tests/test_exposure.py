@@ -119,6 +119,7 @@ def test_colour_corrections_rule_and_checkpoints():
     collection = cfg.setup(_info(unbounded=True, focal_spread=1.0))
     assert on.appearance is not None and off.appearance is None
     assert on.image_codes is None and on.sky is None  # a session: the affine maps alone
+    assert on.appearance_fit_steps == 0 and collection.appearance_fit_steps > 0  # its fit: the colour-fitted figure's
     assert collection.image_codes is not None and collection.sky is not None  # a collection: its codes and skies too
     rebuilt = cfg.for_checkpoint(on.state_dict(), steady).setup(steady)  # the photos not measured: info says steady
     assert rebuilt.appearance is not None and rebuilt.image_codes is None
