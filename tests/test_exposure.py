@@ -78,7 +78,7 @@ def test_srgb_curve_matches_kornia():
     assert np.allclose(srgb_to_linear(x.numpy().astype(np.float64)), ref.numpy(), atol=1e-6)
 
 
-def test_colmap_mouse_gains(scene_path, tmp_path):
+def test_colmap_mouse_gains(scene_path, tmp_path, monkeypatch):
     """On colmap_mouse (one phone, steady light) the photos' gains spread about 0.2, below the threshold; scaling each photo's linear light
     by a known factor is recovered photo by photo (correlation above 0.95) and raises the spread above the rule's threshold."""
     from nerfpipe.data_adapters import load
@@ -87,6 +87,10 @@ def test_colmap_mouse_gains(scene_path, tmp_path):
     n = len(scene.cameras)
     g0 = exposure_gains(scene.points, scene.images, n).numpy()
     assert 0.15 < exposure_spread(torch.from_numpy(g0)) < APPEARANCE_EXPOSURE_SPREAD  # steady: no corrections
+    from nerfpipe.training import trainer
+
+    monkeypatch.setattr(trainer, "EXPOSURE_MAX_PHOTOS", 20)  # the trainer's measurement, over 20 of the training photos
+    assert abs(trainer.exposure_spread_of(scene) - exposure_spread(torch.from_numpy(g0))) < 0.05
     applied = np.random.default_rng(0).normal(0, 0.4, n)
     some = np.arange(0, n, 3)  # every third photo (19), to keep it short
     scaled = [None] * n  # the photos differ in size: files, as a capture's

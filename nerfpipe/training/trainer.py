@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from nerfpipe.data.background import BACKGROUNDS, backgrounds
@@ -341,13 +342,19 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None, exposure: 
                      points=_box_points(scene))
 
 
+EXPOSURE_MAX_PHOTOS = 100
+"""The training photos :func:`exposure_spread_of` reads at most, spread evenly over them (each is decoded once more)."""
+
+
 def exposure_spread_of(scene: SceneData) -> float:
     """The spread of the training photos' log exposure gains (:func:`nerfpipe.data.exposure.exposure_gains`) on a real
-    capture with tracks; 0 for any other scene."""
-    if not scene.shows_surroundings or not scene.points.has_tracks or len(scene.splits["train"]) < 2:
+    capture with tracks, over at most :data:`EXPOSURE_MAX_PHOTOS` of them; 0 for any other scene."""
+    train = np.asarray(scene.splits["train"])
+    if not scene.shows_surroundings or not scene.points.has_tracks or len(train) < 2:
         return 0.0
-    gains = exposure_gains(scene.points, scene.images, len(scene.cameras), scene.splits["train"])
-    return exposure_spread(gains)
+    if len(train) > EXPOSURE_MAX_PHOTOS:
+        train = train[np.linspace(0, len(train) - 1, EXPOSURE_MAX_PHOTOS).round().astype(np.int64)]
+    return exposure_spread(exposure_gains(scene.points, scene.images, len(scene.cameras), train))
 
 
 def _box_points(scene: SceneData) -> "Float[Tensor, 'num_points 3'] | None":
