@@ -373,6 +373,10 @@ def test_fitted_colour_psnr_sees_through_exposure_but_not_through_errors():
     wrong_right = darker.clone()
     wrong_right[:, 30:] = torch.rand(40, 30, 3, generator=g)  # the scored half is wrong: no fit can hide it
     assert fitted_colour_psnr(wrong_right, gt) < 15
+    from nerfpipe.training.evaluation import colour_fitted
+
+    shown = colour_fitted(darker, gt)  # the whole view through the map, as held_out.png shows it with colour corrections
+    assert shown.shape == gt.shape and torch.allclose(shown.float(), gt, atol=1e-5)
 
 
 def test_background_distortion_matches_the_pairwise_formula():

@@ -22,6 +22,7 @@ from nerfpipe.outputs.render import FramePlan, RenderedView, capped_size, plan_f
 from nerfpipe.training.checkpoint import CHECKPOINT
 from nerfpipe.training.runs import write_json
 from nerfpipe.util.errors import require
+from nerfpipe.util.typing import Float, Tensor
 
 
 def dependencies(cfg) -> "tuple[tuple[str, str], ...]":
@@ -69,10 +70,17 @@ def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     on its left half: how well a held-out view is predicted up to its own exposure and white balance
     (the NeRF-W / nerfbaselines protocol for per-image appearance; the map is fitted on pixels not scored)."""
     w = pred.shape[1] // 2
+    mapped = colour_fitted(pred, gt)[:, w:].reshape(-1, 3)
+    return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
+
+
+def colour_fitted(pred: Float[Tensor, "h w 3"], gt: Float[Tensor, "h w 3"]) -> Float[Tensor, "h w 3"]:
+    """The whole image ``pred`` through the affine colour map fitted by least squares on its left half (float64,
+    clamped to [0, 1]): what :func:`fitted_colour_psnr` scores on the right half."""
+    w = pred.shape[1] // 2
     x = pred.reshape(pred.shape[0], -1, 3)[:, :w].reshape(-1, 3)
     y = gt.to(pred.device).reshape(gt.shape[0], -1, 3)[:, :w].reshape(-1, 3)
-    mapped = affine_colour(pred[:, w:].reshape(-1, 3), fit_affine_colour(x, y)).clamp(0, 1)
-    return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
+    return affine_colour(pred.reshape(-1, 3), fit_affine_colour(x, y)).clamp(0, 1).view(*pred.shape[:2], 3)
 
 
 def fit_affine_colour(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -208,8 +216,11 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         fitted = appearance_fitted_view(model, camera_rays(cam, 0), gt, background, chunk, whole=on_view is not None) if fit_appearance else None
         if fitted is not None:
             out["appearance_fitted_psnr"].append(fitted[0])
-        if on_view is not None:  # what the view is scored on: for photo collections, with its fitted appearance
-            on_view(idx[i], view if fitted is None else replace(view, rgb=fitted[1]), gt)
+        if on_view is not None:  # what the view is scored on: for photo collections, with its fitted appearance;
+            shown = view if fitted is None else replace(view, rgb=fitted[1])  # with colour corrections alone, the map's
+            if fitted is None and getattr(model, "appearance", None) is not None:
+                shown = replace(view, rgb=colour_fitted(view.rgb, gt).to(view.rgb))
+            on_view(idx[i], shown, gt)
         if lpips is not None:
             with torch.no_grad():
                 out["lpips"].append(lpips(view.rgb, gt))
