@@ -692,12 +692,10 @@ class FastConfig:
         changed since (:data:`LEGACY_CAPACITY`): the finest level's table is not hashed as the preset now hashes it.
         Runs written by an earlier nerfpipe then still render, mesh and score. The colour corrections' default is the
         checkpoint's (their rule reads the photos, :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
-        if self.appearance is None:  # what it was trained with, whatever the measurement says today (the photos not read)
-            self = replace(self, appearance="appearance" in state)
-        if self.appearance_dim is None:
-            self = replace(self, appearance_dim=state["image_codes"].shape[1] if "image_codes" in state else 0)
-        if self.sky_residual is None:
-            self = replace(self, sky_residual=state["sky"].shape[1] if "sky" in state else 0)
+        trained = {"appearance": "appearance" in state, "appearance_dim": state["image_codes"].shape[1] if "image_codes" in state else 0,
+                   "sky_residual": state["sky"].shape[1] if "sky" in state else 0}
+        if self.appearance_parts(scene_info) != tuple(trained.values()):  # what it was trained with, whatever the photos say today
+            self = replace(self, **{k: v for k, v in trained.items() if getattr(self, k) is None})
         cap = self.resolved(scene_info)
         legacy = LEGACY_CAPACITY.get(cap["preset"])
         if legacy is None or self.levels is not None or self.log2_hashmap_size is not None or not cap["log2_hashmap_size"]:
@@ -706,6 +704,15 @@ class FastConfig:
         if finest is None or finest.shape[0] == 2 ** cap["log2_hashmap_size"]:
             return self
         return replace(self, **legacy)
+
+    def appearance_parts(self, scene_info: SceneInfo) -> "tuple[bool, int, int]":
+        """Whether the model has per-image colour corrections, its image codes' size and its sky residual's rows, as
+        resolved for a scene (:func:`appearance_by_default`, :func:`photo_collection`)."""
+        use_app = appearance_by_default(scene_info) if self.appearance is None else self.appearance
+        collection = photo_collection(scene_info)
+        code_dim = ((APPEARANCE_DIM if collection else 0) if self.appearance_dim is None else self.appearance_dim) if use_app else 0
+        rows = (SKY_RESIDUAL_ROWS if use_app and collection else 0) if self.sky_residual is None else self.sky_residual
+        return use_app, code_dim, rows
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""
@@ -786,15 +793,12 @@ class FastModel(Model):
         self.register_buffer("density_levels", torch.tensor(self.field.density_levels))  # checkpoints keep what they were trained with
         self.grid = cfg.occupancy.setup(aabb)
         self.register_buffer("march_box", aabb.clone())
-        use_app = appearance_by_default(info) if cfg.appearance is None else cfg.appearance
+        use_app, code_dim, rows = cfg.appearance_parts(info)
         self.exposure_spread = info.exposure_spread
         """The training photos' exposure spread the model was built with (``metrics.json``; 0: not measured)."""
         self.appearance = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 12)) if use_app else None
-        collection = photo_collection(info)
-        code_dim = ((APPEARANCE_DIM if collection else 0) if cfg.appearance_dim is None else cfg.appearance_dim) if use_app else 0
         self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
         self.pose_deltas = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 6)) if cfg.pose_refine else None
-        rows = (SKY_RESIDUAL_ROWS if use_app and collection else 0) if cfg.sky_residual is None else cfg.sky_residual
         self.sky = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), rows, 2 * rows, 3)) if rows > 0 else None
         self._view_appearance: "Tensor | None" = None
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
