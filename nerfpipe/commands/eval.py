@@ -78,7 +78,9 @@ def eval_run(
     if pictures:
         from nerfpipe.outputs.colormap import error_text
 
-        render = "appearance fitted on its left half (right half scored)" if scores["appearance_fitted_psnr"] else "mean appearance"
+        render = ("appearance fitted on its left half (right half scored)" if scores["appearance_fitted_psnr"] else
+                  "an affine colour map fitted on its left half (the colour-fitted figure's)" if getattr(model, "appearance", None) is not None
+                  else "mean appearance")
         result["pictures"] = {"folder": str(pictures_dir), "files": [f"view_{i:04d}.png" for i in idx], "mapping": error_text(), "render": render}
     write_json(folder / "eval.json", result)
     if json:
@@ -86,6 +88,8 @@ def eval_run(
     else:
         lp = f", LPIPS {result['lpips']:.4f}" if result["lpips"] is not None else f" (no LPIPS: {lpips_note})"
         fitted = "" if result["psnr_appearance_fitted"] is None else f" ({result['psnr_appearance_fitted']:.2f} dB on right halves, appearance fitted on left halves)"
+        if not fitted and getattr(model, "appearance", None) is not None:  # colour corrections alone: the affine map's figure
+            fitted = f" ({result['psnr_colour_fitted']:.2f} dB on right halves, an affine colour map fitted on left halves)"
         print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
               f"PSNR {result['psnr']:.2f} dB{fitted}, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
         if pictures:
