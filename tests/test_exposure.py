@@ -135,3 +135,32 @@ def test_colour_corrections_rule_and_checkpoints():
     assert FastConfig(preset="small", appearance=False).for_checkpoint(on.state_dict(), varied).appearance is False
     with pytest.raises(ValueError, match="appearance_dim"):
         FastConfig(appearance_dim=-1)
+
+
+def test_the_trainer_turns_the_corrections_on_for_a_capture_whose_exposure_varies(tmp_path):
+    """A synthetic capture (points with tracks, no alpha) has a small spread and no colour corrections; its photos
+    rewritten with each one's linear light scaled by a known factor get the affine maps alone, reported in the stats."""
+    from nerfpipe.data.synthetic import SynthConfig, generate
+    from nerfpipe.data_adapters import load
+    from nerfpipe.training.trainer import Trainer, TrainerConfig
+
+    root = tmp_path / "scene"
+    generate(root, SynthConfig(views=16, width=48, height=48, num_points=800))
+    cfg = TrainerConfig(iters=1, rays_per_step=64, eval_every=0, checkpoint_every=0, video_frames=0, write_outputs=False)
+
+    def built(name):
+        return Trainer(cfg, load(root), "fast", FastConfig(preset="small"), tmp_path / name).model
+
+    steady = built("steady")
+    assert steady.appearance is None and steady.exposure_spread < APPEARANCE_EXPOSURE_SPREAD
+    # brighter only: a pixel clipped in the photo stays clipped (and skipped), where a darker copy of it would not be
+    # the darker exposure of the scene that a camera would record (a real exposure change does not have this problem)
+    gains = np.random.default_rng(1).permutation(np.linspace(0.0, 1.2, 16))
+    for i, path in enumerate(sorted((root / "images").iterdir())):
+        img = iio.imread(path)
+        lin = srgb_to_linear(img[..., :3] / 255.0) * np.exp(gains[i])
+        iio.imwrite(path, (linear_to_srgb(np.clip(lin, 0, 1)) * 255 + 0.5).astype(np.uint8))
+    varied = built("varied")
+    assert varied.exposure_spread > APPEARANCE_EXPOSURE_SPREAD and varied.stats()["exposure_spread"] == varied.exposure_spread
+    assert varied.appearance is not None and varied.image_codes is None and varied.sky is None
+    assert varied.stats()["appearance"] == 1.0 and steady.stats()["appearance"] == 0.0
