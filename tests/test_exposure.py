@@ -164,3 +164,13 @@ def test_the_trainer_turns_the_corrections_on_for_a_capture_whose_exposure_varie
     assert varied.exposure_spread > APPEARANCE_EXPOSURE_SPREAD and varied.stats()["exposure_spread"] == varied.exposure_spread
     assert varied.appearance is not None and varied.image_codes is None and varied.sky is None
     assert varied.stats()["appearance"] == 1.0 and steady.stats()["appearance"] == 0.0
+
+
+def test_the_summary_line_names_the_figure_that_sees_through_exposure():
+    from nerfpipe.training.evaluation import fitted_figure_note
+
+    assert fitted_figure_note({"val_psnr": 18.0, "val_psnr_colour_fitted": 24.0}) == ""  # no corrections: none
+    session = fitted_figure_note({"val_psnr": 18.0, "val_psnr_colour_fitted": 24.4, "appearance": 1.0})
+    assert "24.40 dB" in session and "affine colour map" in session
+    collection = {"val_psnr": 12.0, "val_psnr_colour_fitted": 15.0, "val_psnr_appearance_fitted": 16.1, "appearance": 1.0}
+    assert "16.10 dB" in fitted_figure_note(collection) and "appearance fitted" in fitted_figure_note(collection)

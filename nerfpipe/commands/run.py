@@ -75,7 +75,9 @@ def _figures(run_dir: Path) -> "list[str]":
     if (check := read(run_dir / "check.json")) is not None:
         lines.append(f"check: {check['num_cameras']} cameras, conventions consistent (kornia {check['kornia_max_px']:.1e} px)")
     if (metrics := read(run_dir / "train" / "metrics.json")) is not None:
-        lines.append(f"train: val PSNR {metrics['val_psnr']:.2f} dB after {metrics['iterations']} iterations")
+        from nerfpipe.training.evaluation import fitted_figure_note
+
+        lines.append(f"train: val PSNR {metrics['val_psnr']:.2f} dB{fitted_figure_note(metrics)} after {metrics['iterations']} iterations")
     if (mesh := read(run_dir / "mesh" / "mesh_metrics.json")) is not None:
         lines.append(_mesh_line(mesh))
     if (run_dir / "report.html").is_file():

@@ -108,7 +108,9 @@ def train(cmd: TrainCommand) -> int:
     metrics = train_watched(trainer, cmd.view, cmd.view_port)
     if not trainer.world.writer:  # ranks 1.. of a torchrun group: rank 0 reports
         return 0
-    print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB, SSIM {metrics['val_ssim']:.3f} on {metrics['val_views']} views, "
+    from nerfpipe.training.evaluation import fitted_figure_note
+
+    print(f"{out}: val PSNR {metrics['val_psnr']:.2f} dB{fitted_figure_note(metrics)}, SSIM {metrics['val_ssim']:.3f} on {metrics['val_views']} views, "
           f"{metrics['iterations']} iterations in {metrics['train_seconds']:.0f} s")
     return 0
 

@@ -74,6 +74,17 @@ def fitted_colour_psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     return psnr_from_mse(float(((mapped - gt[:, w:].reshape(-1, 3).double().to(mapped.device)) ** 2).mean()))
 
 
+def fitted_figure_note(metrics: dict) -> str:
+    """For a summary line after ``val PSNR X dB``: the figure that sees through each held-out photo's own exposure, where
+    the model has per-image colour corrections (the appearance fitted with image codes, else the affine colour map); ""
+    without them."""
+    if metrics.get("val_psnr_appearance_fitted") is not None:
+        return f" ({metrics['val_psnr_appearance_fitted']:.2f} dB on right halves, appearance fitted on left halves)"
+    if metrics.get("appearance") and metrics.get("val_psnr_colour_fitted") is not None:
+        return f" ({metrics['val_psnr_colour_fitted']:.2f} dB on right halves, an affine colour map fitted on left halves)"
+    return ""
+
+
 def colour_fitted(pred: Float[Tensor, "h w 3"], gt: Float[Tensor, "h w 3"]) -> Float[Tensor, "h w 3"]:
     """The whole image ``pred`` through the affine colour map fitted by least squares on its left half (float64,
     clamped to [0, 1]): what :func:`fitted_colour_psnr` scores on the right half."""
