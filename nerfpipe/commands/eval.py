@@ -38,7 +38,7 @@ def eval_run(
     import time
 
     from nerfpipe.outputs.novel_views import RenderConfig, background
-    from nerfpipe.training.evaluation import eval_sizes, eval_split, eval_views, lpips_scorer, score_views
+    from nerfpipe.training.evaluation import eval_sizes, eval_split, eval_views, fitted_figure_note, lpips_scorer, score_views
     from nerfpipe.training.runs import load_run, model_dir
     from nerfpipe.util.atomic import write_json
     from nerfpipe.util.devices import check_device, describe
@@ -87,9 +87,8 @@ def eval_run(
         print(_json.dumps(result, indent=2))
     else:
         lp = f", LPIPS {result['lpips']:.4f}" if result["lpips"] is not None else f" (no LPIPS: {lpips_note})"
-        fitted = "" if result["psnr_appearance_fitted"] is None else f" ({result['psnr_appearance_fitted']:.2f} dB on right halves, appearance fitted on left halves)"
-        if not fitted and getattr(model, "appearance", None) is not None:  # colour corrections alone: the affine map's figure
-            fitted = f" ({result['psnr_colour_fitted']:.2f} dB on right halves, an affine colour map fitted on left halves)"
+        fitted = fitted_figure_note({"val_psnr_appearance_fitted": result["psnr_appearance_fitted"],
+                                     "val_psnr_colour_fitted": result["psnr_colour_fitted"], "appearance": getattr(model, "appearance", None) is not None})
         print(f"{folder}: {len(idx)} {result['split']} views at {', '.join(result['sizes'])}: "
               f"PSNR {result['psnr']:.2f} dB{fitted}, SSIM {result['ssim']:.4f}{lp} -> {folder / 'eval.json'}")
         if pictures:

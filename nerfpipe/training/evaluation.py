@@ -228,8 +228,10 @@ def score_views(model, scene, idx: "list[int]", sizes: "list[tuple[int, int]]", 
         if fitted is not None:
             out["appearance_fitted_psnr"].append(fitted[0])
         if on_view is not None:  # what the view is scored on: for photo collections, with its fitted appearance;
-            shown = view if fitted is None else replace(view, rgb=fitted[1])  # with colour corrections alone, the map's
-            if fitted is None and getattr(model, "appearance", None) is not None:
+            shown = view  # with colour corrections alone, through the affine map the colour-fitted figure scores
+            if fitted is not None:
+                shown = replace(view, rgb=fitted[1])
+            elif getattr(model, "appearance", None) is not None:
                 shown = replace(view, rgb=colour_fitted(view.rgb, gt).to(view.rgb))
             on_view(idx[i], shown, gt)
         if lpips is not None:

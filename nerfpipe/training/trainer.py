@@ -397,8 +397,6 @@ def support_plane_of(scene: SceneData) -> "tuple[float, float, float, float] | N
     plane the mesh stage finds on its mesh; the room scene's floor exactly; ngp_fox (no plane under its points): None."""
     if not scene.shows_surroundings or scene.points is None or len(scene.points.xyz) < SUPPORT_MIN_POINTS:
         return None
-    import numpy as np
-
     from nerfpipe.data.normalize import upright_direction
     from nerfpipe.mesh.clean import support_plane
     from nerfpipe.mesh.metrics import robust_diagonal
@@ -433,8 +431,6 @@ def above_support(scene: SceneData) -> "np.ndarray | None":
     plane = object_support(scene_info(scene))
     if plane is None:
         return None
-    import numpy as np
-
     from nerfpipe.mesh.metrics import robust_diagonal
 
     xyz = scene.points.xyz.double().cpu().numpy()
