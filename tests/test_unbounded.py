@@ -697,7 +697,7 @@ def _descend(loss_fn, params, steps: int = 30) -> None:
 
 def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures():
     from nerfpipe.data.orbit import camera_arc, look_at
-    from nerfpipe.models.fast import SPARSITY_MIN_ARC, SPARSITY_REAL
+    from nerfpipe.models.fast import SPARSITY_MIN_ARC, SPARSITY_REAL, SPARSITY_UNTIL
 
     box = torch.tensor([[-1.0] * 3, [1.0] * 3])
 
@@ -733,6 +733,13 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert "sparsity" in model.get_losses(out, torch.zeros(2, 3))
     model.eval()
     assert "sparsity" not in model.get_losses(out, torch.zeros(2, 3))
+    # on for the first SPARSITY_UNTIL steps only (it clears the fog, then would thin plain surfaces into holes)
+    model.train()
+    assert model.sparsity_until == SPARSITY_UNTIL and model.stats()["sparsity_until"] == SPARSITY_UNTIL
+    for step, on in ((SPARSITY_UNTIL - 1, True), (SPARSITY_UNTIL, False)):
+        model._before_step(step)
+        assert ("sparsity" in model.get_losses(out, torch.zeros(2, 3))) == on, step
+    assert _model(sparsity_weight=1.0, sparsity_until=10).sparsity_until == 10
 
 
 def test_evidence_sparsity_clears_the_box_away_from_the_sparse_points_where_the_sparsity_is_off():

@@ -344,7 +344,24 @@ Its price: a plain surface over a plain background (colmap_mouse's lilac end ove
 half transparent in a more saturated colour as opaque, and the loss tips that tie toward transparency: holes there in
 the depth renders and the mesh, in training views too (without it the end is whole and the table's slab returns).
 Not removed (session 66, README): the table black under the object, each sample's own colour error, the loss counted
-in occupied cells only."""
+in occupied cells only. Fewer since session 66: the loss stops at :data:`SPARSITY_UNTIL`."""
+
+SPARSITY_UNTIL = 300
+"""``FastConfig.sparsity_until``'s default: the sparsity loss clears the box's fog in the first steps (the occupancy
+grid then stops marching the cells it emptied, which nothing refills) and is off from this step on, before it thins
+plain surfaces into holes (they form between steps 300 and 500 on colmap_mouse's lilac end). Side by side at equal
+steps (session 66, one ray per pixel, 400 px), on throughout / off from step 300: colmap_mouse (7 views) after 600 /
+900 / 1,200 24.876 / 24.866 / 24.900 dB (averaged after 1,200 25.008) against **24.894 / 24.887 / 24.908 (25.037)**,
+7.3 / 6.6 / 6.0 against 8.1 / 7.7 / 7.5 samples per ray, the occupied share 0.13 against 0.18 after 900 (steady
+from step 600 on: the fog does not return); the posed 23-photo cut (3 views) after 600 / 900 24.763 / 24.529 (24.70)
+against 24.718 / 24.610 (**24.74**), the lilac end's holes in the depth renders mostly gone (off from 500: as on
+throughout); the room scene (``nerfpipe synth --scene room``, 7 views) after 600 / 1,000 **30.947 / 31.833 (31.40)**
+against 30.722 / 31.583 (31.12): its price. End to end (``nerfpipe run --time-budget 300``, alone): colmap_mouse
+25.17 dB after 1,470 iterations, mesh 98.2 % / violation 0.021, 8,984 boundary edges and 86 pieces, against **25.20
+dB** after 1,408, 98.2 % / 0.021, **6,522** boundary edges and 50 pieces; the cut (``180``) 24.84 after 1,016, 98.8 %
+/ 0.018, 11,049 edges against 24.78 after 836, 98.7 % / 0.018, **9,072** edges."""
+SPARSITY_NEVER_OFF = 10**9
+"""``sparsity_until`` of runs written before session 66 (``FastConfig.OPTIONS_SINCE``): on throughout."""
 
 EVIDENCE_SPARSITY = 0.3
 """``FastConfig.evidence_sparsity_weight`` of real captures with sparse points whose ``sparsity_weight`` is 0 (facades,
@@ -416,7 +433,7 @@ class FastConfig:
     """The fast grid field (``fast``): the default model of ``nerfpipe train``."""
 
     OPTIONS_SINCE: ClassVar["dict[str, object]"] = {"behind.front": False, "log2_fine_hashmap_size": 0,
-                                                   "front_min_images": FRONT_MIN_IMAGES_BEFORE}
+                                                   "front_min_images": FRONT_MIN_IMAGES_BEFORE, "sparsity_until": SPARSITY_NEVER_OFF}
     """Options added since runs were first written (dotted names), with the value such a run was trained as: a run's
     ``config.json`` that lacks one renders, meshes and scores as it trained (:func:`nerfpipe.training.runs.load_run`)."""
 
@@ -665,6 +682,8 @@ class FastConfig:
     (``background_field``, on by default for real captures), 0 otherwise."""
     sparsity_points: int = 4096
     """Random points per step of the sparsity loss."""
+    sparsity_until: "int | None" = None
+    """Training step from which the sparsity loss is off (None: :data:`SPARSITY_UNTIL`)."""
     evidence_sparsity_weight: "float | None" = None
     """Weight of the sparsity loss at the box's random points that lie farther than ``evidence_radius`` from every
     sparse point (where SfM saw no surface: the air in front of a facade and above its roof, which the box fills with
@@ -830,6 +849,7 @@ class FastModel(Model):
         rounds), before any were dropped from :attr:`sample_capacity`'s slots."""
         sparse = around  # the field behind the box takes what the box may not keep
         self.sparsity_weight = (SPARSITY_REAL if sparse else 0.0) if cfg.sparsity_weight is None else cfg.sparsity_weight
+        self.sparsity_until = SPARSITY_UNTIL if cfg.sparsity_until is None else cfg.sparsity_until
         points = info.points if info.points is not None and len(info.points) >= EVIDENCE_MIN_POINTS else None
         evidence = EVIDENCE_SPARSITY if (use_behind and points is not None and self.sparsity_weight == 0) else 0.0
         self.evidence_sparsity_weight = evidence if cfg.evidence_sparsity_weight is None else cfg.evidence_sparsity_weight
@@ -974,7 +994,7 @@ class FastModel(Model):
         if not (self._fixed_on(self.march_box.device) and torch.is_grad_enabled() and self.cfg.early_termination) or self._view_appearance is not None:
             return None
         step = self._march_step()
-        flags = ((self.behind is not None or self.plane is not None) and self._step >= self.cfg.behind_from, self.sparsity_weight)
+        flags = ((self.behind is not None or self.plane is not None) and self._step >= self.cfg.behind_from, self._sparsity_on())
         where = tuple((t.data_ptr(), tuple(t.shape)) for t in (*self.parameters(), *self.buffers()))
         return (step, self.step_size, self.grid.max_intervals(step), self._min_alpha(), self.field.active_levels,
                 self.field.density_levels, *flags, where)
@@ -1176,13 +1196,17 @@ class FastModel(Model):
             losses["behind_proposal"] = self.cfg.behind.proposal_weight * outputs.extras["behind_proposal"]
         if self.cfg.entropy_weight > 0 and self.training and (self.behind is None or self._step >= self.cfg.behind_from):
             losses["entropy"] = self.cfg.entropy_weight * binary_entropy(outputs.acc).mean()
-        if self.sparsity_weight > 0 and self.training:
+        if self.training and self._sparsity_on():
             losses["sparsity"] = self.sparsity_weight * self._sparsity()
         if self.evidence_sparsity_weight > 0 and self.evidence is not None and self.training:
             losses["evidence_sparsity"] = self.evidence_sparsity_weight * self._sparsity(away_from_points=True)
         if self.cfg.tv_weight > 0 and self.training:
             losses["tv"] = self.cfg.tv_weight * self.field.density_tv(1 << 16, self.generator)
         return losses
+
+    def _sparsity_on(self) -> bool:
+        """Whether this step has the sparsity loss (its weight, until :attr:`sparsity_until`)."""
+        return self.sparsity_weight > 0 and self._step < self.sparsity_until
 
     def _sparsity(self, away_from_points: bool = False) -> Float[Tensor, ""]:
         """Mean opacity of one marching step at uniform random points of the marched box (``away_from_points``: counted
@@ -1377,7 +1401,7 @@ class FastModel(Model):
             finest_voxel=self.field.voxel_size(len(self.field.density_grid.resolutions) - 1),
             hashed_levels=float(sum(h is not None for h in self.field.density_grid.hash_rows)),
             **self._sparse_stats(),
-            sparsity_weight=float(self.sparsity_weight),
+            sparsity_weight=float(self.sparsity_weight), sparsity_until=float(self.sparsity_until),
             evidence_sparsity_weight=float(self.evidence_sparsity_weight),
             support_texture=float(self.plane is not None),
             behind_front=float(self.front),
