@@ -101,6 +101,18 @@ def test_split_rule_and_layouts(tmp_path):
     assert colmap.detect(tmp_path) == 0
 
 
+def test_largest_of_several_models(tmp_path):
+    """COLMAP's mapper writes one model per connected group of photos: the one with the most registered images is read,
+    whichever its number."""
+    write_scene(synthesize("PINHOLE", frames=6, seed=1), tmp_path, model_dir="sparse/0")
+    write_scene(synthesize("PINHOLE", frames=11, seed=2), tmp_path, model_dir="sparse/1")
+    write_scene(synthesize("PINHOLE", frames=4, seed=3), tmp_path, model_dir="sparse/2")
+    assert colmap.find_model_dir(tmp_path) == tmp_path / "sparse" / "1"
+    assert len(data_adapters.load(tmp_path).cameras) == 11
+    (tmp_path / "sparse" / "1" / "points3D.bin").unlink()  # an incomplete model is not a candidate
+    assert colmap.find_model_dir(tmp_path) == tmp_path / "sparse" / "0"
+
+
 def test_bounds_contain_points(tmp_path):
     scene = data_adapters.load(make_scene(tmp_path, "PINHOLE"))
     assert 0 < scene.near < scene.far

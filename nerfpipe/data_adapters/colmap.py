@@ -1,7 +1,8 @@
 """COLMAP sparse models (binary or text) plus an ``images/`` folder, read with pycolmap.
 
-Layouts recognised (first match wins): ``<root>/sparse/0/``, ``<root>/sparse/``, or the model
-files ``cameras``, ``images`` and ``points3D`` (``.bin`` or ``.txt``) directly in ``<root>``.
+Layouts recognised (first match wins): ``<root>/sparse/N/`` (of several numbered models, the one with the most
+registered images), ``<root>/sparse/``, or the model files ``cameras``, ``images`` and ``points3D`` (``.bin`` or
+``.txt``) directly in ``<root>``.
 Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
 ``images/`` (:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
 An image may be a downscaled copy of what COLMAP saw (the same aspect, to a pixel): its camera and
@@ -66,10 +67,31 @@ def _model_file(model_dir: Path, stem: str) -> "Path | None":
     return None
 
 
+def _has_model(folder: Path) -> bool:
+    return folder.is_dir() and all(_model_file(folder, s) is not None for s in MODEL_FILES)
+
+
+def _registered_count(model_dir: Path) -> int:
+    """Registered images of the model in ``model_dir`` (-1 where it cannot be read)."""
+    try:
+        return int(_open(model_dir).num_reg_images())
+    except NerfpipeError:
+        return -1
+
+
 def find_model_dir(root: Path) -> "Path | None":
-    """The folder holding the model files under ``root``, or None."""
-    for cand in (root / "sparse" / "0", root / "sparse", root):
-        if cand.is_dir() and all(_model_file(cand, s) is not None for s in MODEL_FILES):
+    """The folder holding the model files under ``root``, or None.
+
+    Where ``sparse/`` holds several numbered models (COLMAP's mapper writes one per connected group of photos, and the
+    largest is not always ``0``), the one with the most registered images (the lowest number among equals)."""
+    numbered = []
+    if (root / "sparse").is_dir():
+        numbered = sorted((d for d in (root / "sparse").iterdir() if d.name.isdigit() and _has_model(d)), key=lambda d: int(d.name))
+    if len(numbered) > 1:
+        counts = [_registered_count(d) for d in numbered]
+        return numbered[counts.index(max(counts))]
+    for cand in (*numbered, root / "sparse", root):
+        if _has_model(cand):
             return cand
     return None
 
@@ -246,7 +268,7 @@ def read(path: Path) -> SceneData:
     model_dir = find_model_dir(root) if root.is_dir() else None
     if model_dir is None:
         raise NerfpipeError(
-            "no COLMAP model (cameras/images/points3D .bin or .txt) in sparse/0, sparse or the folder", root
+            "no COLMAP model (cameras/images/points3D .bin or .txt) in sparse/N, sparse or the folder", root
         )
     cameras_file, images_file = _model_file(model_dir, "cameras"), _model_file(model_dir, "images")
     rec = _open(model_dir)
@@ -297,7 +319,7 @@ def _assemble(root, rec, images, cams: Cameras, models, paths) -> SceneData:
 
 ADAPTER = AdapterSpec(
     name="colmap",
-    description="COLMAP sparse model (sparse/0, binary or text) with an images/ folder",
+    description="COLMAP sparse model (sparse/N, binary or text) with an images/ folder",
     detect=detect,
     read=read,
 )
