@@ -113,6 +113,20 @@ def test_largest_of_several_models(tmp_path):
     assert colmap.find_model_dir(tmp_path) == tmp_path / "sparse" / "0"
 
 
+def test_photos_beside_the_model(tmp_path):
+    """COLMAP run with the photos' own folder as its image path writes the model beside them: no ``images/`` folder,
+    the names relative to the folder itself. With an ``images/`` folder its names are looked up there as always."""
+    rec = synthesize("PINHOLE", frames=9)
+    root = write_scene(rec, tmp_path / "beside")
+    for f in sorted((root / "images").iterdir()):
+        f.rename(root / f.name)
+    (root / "images").rmdir()
+    scene = data_adapters.load(root)
+    assert len(scene.cameras) == 9 and all(p.parent == root and p.is_file() for p in scene.images.paths)
+    (root / "images").mkdir()  # an images/ folder is where the names are looked up, even an empty one
+    assert "missing" in _error(root).problem
+
+
 def test_bounds_contain_points(tmp_path):
     scene = data_adapters.load(make_scene(tmp_path, "PINHOLE"))
     assert 0 < scene.near < scene.far

@@ -3,8 +3,9 @@
 Layouts recognised (first match wins): ``<root>/sparse/N/`` (of several numbered models, the one with the most
 registered images), ``<root>/sparse/``, or the model files ``cameras``, ``images`` and ``points3D`` (``.bin`` or
 ``.txt``) directly in ``<root>``.
-Images are looked up as ``<root>/images/<image name>``; a name (symlinks resolved) must stay inside
-``images/`` (:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
+Images are looked up as ``<root>/images/<image name>`` (or ``<root>/<image name>`` where there is no ``images/``
+folder: COLMAP run on the photos' own folder); a name (symlinks resolved) must stay inside that folder
+(:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
 An image may be a downscaled copy of what COLMAP saw (the same aspect, to a pixel): its camera and
 keypoints are scaled to it.
 
@@ -262,6 +263,16 @@ def _cameras(rec, images, cameras_file: Path, images_file: Path) -> "tuple[Camer
     return cams, models
 
 
+def image_folder(root: Path, first_name: str) -> Path:
+    """Where the model's image names are relative to: ``root/images``, or ``root`` itself where there is no
+    ``images/`` folder and the first registered image lies in ``root`` (COLMAP run with the photos' own folder as its
+    image path, the model written beside them)."""
+    images = root / "images"
+    if not images.is_dir() and (root / first_name).is_file():
+        return root
+    return images
+
+
 def read(path: Path) -> SceneData:
     """Read a COLMAP scene folder; see the module docstring for the layout."""
     root = Path(path)
@@ -276,7 +287,8 @@ def read(path: Path) -> SceneData:
     if not images:
         raise NerfpipeError("COLMAP model has no registered images", images_file)
     cams, models = _cameras(rec, images, cameras_file, images_file)
-    paths = [resolve_inside(root / "images", im.name, images_file) for im in images]
+    folder = image_folder(root, images[0].name)
+    paths = [resolve_inside(folder, im.name, images_file) for im in images]
     width, height = zip(*(_image_size(p, rec.camera(im.camera_id)) for p, im in zip(paths, images)))
     cams = cams.resized(torch.tensor(width), torch.tensor(height))  # the same cameras unless the images are downscaled copies
     return _assemble(root, rec, images, cams, models, paths)
