@@ -150,7 +150,7 @@ posed 23-photo cut (3 views) 24.449 / 24.860 / **24.733**, 24.738 / 24.730 / **2
 same reconstruction of colmap_mouse's 59 photos from the ``sfm`` stage (8 views) 24.975 / 25.265 / **25.147**, 25.133 /
 25.414 / **25.372**, 25.246 / 25.493 / **25.452**; the synthetic room (``nerfpipe synth --scene room``, 7 views) 30.242 /
 30.877 / **30.675**, 30.944 / 31.472 / **31.354**, 31.406 / 31.806 / **31.711**; photos_sceaux_castle (its sfm folder, 2
-views) after 600 / 900 15.170 / 15.077 / **15.119**, 15.137 / 15.030 / **15.082**. Power 3: +0.1 to +0.4 dB where the
+views) after 600 / 900 / 1,200 15.170 / 15.077 / **15.119**, 15.137 / 15.030 / **15.082**, 15.110 / 15.019 / **15.055**. Power 3: +0.1 to +0.4 dB where the
 scene still improves, at most 0.08 dB less where it has stopped by 1,200 steps (a longer window smooths more there);
 power 7 loses more there."""
 
