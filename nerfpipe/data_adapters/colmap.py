@@ -80,29 +80,35 @@ def _registered_count(model_dir: Path) -> int:
         return -1
 
 
+def _candidates(root: Path) -> "list[Path]":
+    """The folders under ``root`` that hold model files: the numbered models in ``sparse/`` (by number), else
+    ``sparse/`` itself, else ``root`` (the first that has one)."""
+    if (root / "sparse").is_dir():
+        numbered = sorted((d for d in (root / "sparse").iterdir() if d.name.isdigit() and _has_model(d)), key=lambda d: int(d.name))
+        if numbered:
+            return numbered
+    return [c for c in (root / "sparse", root) if _has_model(c)][:1]
+
+
 def find_model_dir(root: Path) -> "Path | None":
     """The folder holding the model files under ``root``, or None.
 
     Where ``sparse/`` holds several numbered models (COLMAP's mapper writes one per connected group of photos, and the
-    largest is not always ``0``), the one with the most registered images (the lowest number among equals)."""
-    numbered = []
-    if (root / "sparse").is_dir():
-        numbered = sorted((d for d in (root / "sparse").iterdir() if d.name.isdigit() and _has_model(d)), key=lambda d: int(d.name))
-    if len(numbered) > 1:
-        counts = [_registered_count(d) for d in numbered]
-        return numbered[counts.index(max(counts))]
-    for cand in (*numbered, root / "sparse", root):
-        if _has_model(cand):
-            return cand
-    return None
+    largest is not always ``0``), the one with the most registered images (the lowest number among equals; each is read
+    to count them, so only where there are several)."""
+    found = _candidates(root)
+    if len(found) > 1:
+        counts = [_registered_count(d) for d in found]
+        return found[counts.index(max(counts))]
+    return found[0] if found else None
 
 
 def detect(path: Path) -> int:
-    """A folder with a COLMAP model is a strong match; anything else is not COLMAP."""
+    """A folder with a COLMAP model is a strong match; anything else is not COLMAP (no model is read here)."""
     path = Path(path)
     if not path.is_dir():
         return 0
-    return 20 if find_model_dir(path) is not None else 0
+    return 20 if _candidates(path) else 0
 
 
 def _records_fit(file: Path) -> "str | None":
