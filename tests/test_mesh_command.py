@@ -151,6 +151,9 @@ def test_tsdf_views_follow_the_time_budget():
     tight, tight_frame = tsdf_frames(model, train, 12, 32, 4096, "cpu", seconds=1e-9, min_views=3)
     assert len(tight) == 3 and torch.equal(tight.world_from_cam[0], cams.world_from_cam[0])
     assert int(tight.width[0]) == round(32 * MIN_TSDF_SHRINK) and (tight_frame(0)[0] > 0).any()
+    # the renders' seconds are summed for mesh.json: the timed first view's and each later one's
+    before = tight_frame.seconds()
+    assert before > 0 and tight_frame(1) is not None and tight_frame.seconds() > before
 
 
 def test_tsdf_renders_smaller_views_rather_than_too_few(monkeypatch):
@@ -188,6 +191,7 @@ def test_tsdf_fuses_where_rays_stop_not_the_fog_pulled_mean():
     out = mesh_model(cfg, FoggySphereModel(), sphere_scene(), RenderedViews(tsdf_views=12, tsdf_size=48))
     radius = np.linalg.norm(out.full.vertices, axis=1)
     assert out.figures["method"] == "tsdf" and abs(np.median(radius) - RADIUS) < 0.02  # the mean depth would put it at ~0.3 or less
+    assert out.figures["tsdf_views"] == 12 and out.figures["seconds_tsdf_renders"] > 0
 
 
 def test_eval_mesh_counts_the_objects_points_above_its_support(scene_path, tmp_path, capsys):

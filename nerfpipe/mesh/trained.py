@@ -26,13 +26,15 @@ class RenderedViews:
     """Rays per forward pass when rendering (None: the model's ``render_chunk``)."""
     min_views: int = 8
     """Under a time budget, fewer TSDF views are rendered (evenly spread), but never fewer than this."""
-    budget_share: float = 0.8
+    budget_share: float = 0.6
     """Under a time budget, the TSDF depth renders take at most this share of the time left after ``fixed_seconds``
-    (timed on the first view)."""
-    fixed_seconds: float = 20.0
-    """What the rest of the mesh stage takes under a budget (fusion, cleaning, simplification, metrics): 20-24 s
-    on 2 cores for colmap_mouse and the Sceaux castle (half the time left for the renders overran the castle's
-    31 s by 8 s)."""
+    (timed on the first view); the rest is the margin of a slow hour and the orbit render's time."""
+    fixed_seconds: float = 10.0
+    """What the rest of the mesh stage takes under a budget (fusion, cleaning, simplification, metrics). Session 68
+    on 2 cores: 7.5 s for colmap_mouse (27.5 s in all, 20.0 s of it the 48 renders), about 5 s for 23 of ngp_fox's
+    photos and for the Sceaux castle (sessions up to 40 measured 20-24 s and reserved 20: with 21.5 s left, 23 of
+    ngp_fox's photos got 8 renders of 84-105 px and 91-92 % of the points near the mesh, against 99.5 % with 16 of
+    174 px when 29 s were left, while 16 s of the run's 180 went unused)."""
 
     def __post_init__(self) -> None:
         refuse_unless((
@@ -72,7 +74,7 @@ def mesh_model(
                             sight_lines=lines, support=known_support(model))
     if tsdf_cams is not None:
         size = int(torch.maximum(tsdf_cams.width, tsdf_cams.height).max())
-        out.figures.update(tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
+        out.figures.update(seconds_tsdf_renders=frame_fn.seconds(), tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
     return out
 
 
@@ -155,20 +157,23 @@ def tsdf_frames(model, train, views: int, size: int, chunk: "int | None", device
 
     base = dataclasses.replace(train, distortion=torch.zeros_like(train.distortion), dist_params=torch.zeros_like(train.dist_params))
     base = resize_each(base, size / torch.maximum(base.width, base.height).double())
-    cams, cache = base[spread(views)], {}
+    cams, cache, spent = base[spread(views)], {}, [0.0]
 
     def frame(i: int):
         if i in cache:
             return cache.pop(i)
+        start = time.perf_counter()
         view = render_cameras(model, cams[i : i + 1].to(device), chunk)[0]
         depth = stop_depth(view).nan_to_num(0.0).cpu()
         z = depth * camera_rays(cams, i).z_scale
+        spent[0] += time.perf_counter() - start
         return z.double().numpy(), (view.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
+    frame.seconds = lambda: spent[0]  # type: ignore[attr-defined]  # the renders' time so far (mesh.json's figure)
+
     if seconds is not None and len(cams) > min_views:
-        start = time.perf_counter()
         first = frame(0)
-        fit = seconds / max(time.perf_counter() - start, 1e-3)  # full-size views that fit
+        fit = seconds / max(frame.seconds(), 1e-3)  # full-size views that fit
         want = min(len(cams), 2 * min_views)
         if fit < want:  # rather twice min_views views down to half the size than fewer sharp ones; when not even
             # min_views fit at full size, min_views smaller ones (down to MIN_TSDF_SHRINK): the budget holds
