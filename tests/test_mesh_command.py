@@ -15,6 +15,7 @@ from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.export import write_ply
 from nerfpipe.mesh.views import look_at
 from nerfpipe.models.base import Model, RenderOutputs
+from nerfpipe.util.errors import NerfpipeError
 
 RADIUS = 0.5
 WORLD_FROM_INPUT = Similarity(torch.eye(3, dtype=torch.float64), torch.tensor([0.2, 0.0, -0.1], dtype=torch.float64), 2.0)
@@ -154,6 +155,21 @@ def test_tsdf_views_follow_the_time_budget():
     # the renders' seconds are summed for mesh.json: the timed first view's and each later one's
     before = tight_frame.seconds()
     assert before > 0 and tight_frame(1) is not None and tight_frame.seconds() > before
+
+
+def test_tsdf_render_budget_keeps_a_reserve_that_grows_with_the_time_left():
+    """What the renders may take of the time left: ``budget_share`` of it after a reserve of ``fixed_seconds``, or of
+    ``fixed_share`` of it where that is more; nothing when the reserve takes it all; no limit without a budget."""
+    from nerfpipe.mesh.trained import RenderedViews
+
+    views = RenderedViews(budget_share=0.6, fixed_seconds=10.0, fixed_share=0.3)
+    assert views.render_budget(None) is None
+    assert views.render_budget(21.5) == pytest.approx(0.6 * 11.5)  # session 68's starved fox: 8 views of 105 px before
+    assert views.render_budget(80.0) == pytest.approx(0.6 * 56.0)
+    assert views.render_budget(5.0) == 0.0
+    for name, value in (("fixed_share", 1.0), ("budget_share", 0.0), ("fixed_seconds", -1.0)):
+        with pytest.raises(NerfpipeError, match=name.replace("_", "-")):
+            RenderedViews(**{name: value})
 
 
 def test_tsdf_renders_smaller_views_rather_than_too_few(monkeypatch):

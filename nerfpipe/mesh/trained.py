@@ -30,16 +30,30 @@ class RenderedViews:
     """Under a time budget, the TSDF depth renders take at most this share of the time left after ``fixed_seconds``
     (timed on the first view); the rest is the margin of a slow hour and the orbit render's time."""
     fixed_seconds: float = 10.0
-    """What the rest of the mesh stage takes under a budget (fusion, cleaning, simplification, metrics). Session 68
-    on 2 cores: 7.5 s for colmap_mouse (27.5 s in all, 20.0 s of it the 48 renders), about 5 s for 23 of ngp_fox's
-    photos and for the Sceaux castle (sessions up to 40 measured 20-24 s and reserved 20: with 21.5 s left, 23 of
-    ngp_fox's photos got 8 renders of 84-105 px and 91-92 % of the points near the mesh, against 99.5 % with 16 of
-    174 px when 29 s were left, while 16 s of the run's 180 went unused)."""
+    """What the rest of the mesh stage takes under a budget (fusion, cleaning, simplification, metrics) at least; or
+    ``fixed_share`` of the time left where that is more. Session 68 on 2 cores: 7.5 s for colmap_mouse (27.5 s in all,
+    20.0 s of it the 48 renders), about 5 s for 23 of ngp_fox's photos and for the Sceaux castle, 27 s for the
+    synthetic demo (658,000 faces: the simplification 11.7 s, cleaning and colour 4.8 s). Sessions up to 40 reserved
+    20 s: with 21.5 s left, 23 of ngp_fox's photos got 8 renders of 84-105 px and 91-92 % of the points near the mesh,
+    against 99.4 % with 16 of 143 px under this reserve, while 16 s of the run's 180 went unused."""
+    fixed_share: float = 0.3
+    """See ``fixed_seconds``: with more time left the reserve grows with it (a mesh of many faces, such as the demo's, takes
+    longer to clean and simplify): with 40 s left the renders get what the 20 s reserve gave them (16.8 against 16 s),
+    with more they get less (80 s left: 33.6 against 48 s; colmap_mouse's 48 renders took 20 s)."""
+
+    def render_budget(self, seconds: "float | None") -> "float | None":
+        """Seconds the TSDF depth renders may take with ``seconds`` left for the mesh stage (None: no budget)."""
+        if seconds is None:
+            return None
+        return self.budget_share * max(seconds - max(self.fixed_seconds, self.fixed_share * seconds), 0.0)
 
     def __post_init__(self) -> None:
         refuse_unless((
             ("tsdf_views", self.tsdf_views >= 1, "at least 1", self.tsdf_views),
             ("tsdf_size", 8 <= self.tsdf_size <= 8192, "between 8 and 8192 pixels", self.tsdf_size),
+            ("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share),
+            ("fixed_seconds", self.fixed_seconds >= 0, "0 or more", self.fixed_seconds),
+            ("fixed_share", 0 <= self.fixed_share < 1, "in [0, 1)", self.fixed_share),
             ("chunk", self.chunk is None or self.chunk >= 1, "at least 1", self.chunk),
         ))  # fmt: skip
 
@@ -48,8 +62,7 @@ def mesh_model(
     cfg: MeshConfig, model, scene, views: "RenderedViews | None" = None, device: str = "cpu", seconds: "float | None" = None
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify the mesh of ``model`` trained on ``scene`` (world frame); with
-    ``seconds`` (the time left), the TSDF renders as many views as fit ``views.budget_share`` of what is left
-    after ``views.fixed_seconds``."""
+    ``seconds`` (the time left), the TSDF renders as many views as fit :meth:`RenderedViews.render_budget`."""
     import torch
 
     from nerfpipe.mesh.pipeline import build_meshes
@@ -61,8 +74,8 @@ def mesh_model(
     train = scene.split_cameras("train")
     frame_fn, tsdf_cams = None, None
     if cfg.method == "tsdf":
-        budget = None if seconds is None else views.budget_share * max(seconds - views.fixed_seconds, 0.0)
-        tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device, budget, views.min_views)
+        tsdf_cams, frame_fn = tsdf_frames(model, train, views.tsdf_views, views.tsdf_size, views.chunk, device, views.render_budget(seconds),
+                                          views.min_views)
     depth_level = cfg.method == "mc" and cfg.level is None and cfg.level_from != "opacity"
     points, origins = surface_points(model, train, views.chunk, device) if depth_level else (None, None)
     from nerfpipe.mesh.reference import sight_lines
