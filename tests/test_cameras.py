@@ -194,6 +194,15 @@ def test_upright_direction_is_the_normal_of_the_right_axes_not_the_mean_image_up
     assert _angle(cams.up.mean(0), true_up) > 15
     assert _angle(upright_direction(cams), true_up) < 1e-6
 
+    # half of them, and then all, portrait photos stored sideways (a phone held upright stores its sensor's rows):
+    # neither every right axis nor the mean image-up is a start the per-camera choice recovers from
+    for sideways in (range(0, 9, 2), range(9)):
+        turned = torch.stack(ring).clone()
+        for i in sideways:
+            turned[i, :3, :3] = turned[i, :3, :3] @ (quarter if i % 4 else quarter.T)
+        cams = Cameras.create(tilt.apply_world_from_cam(turned), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)
+        assert _angle(upright_direction(cams), true_up) < 1e-6, list(sideways)  # the sign too: they look down at the table
+
     # cameras all facing one way (a facade): the right axes decide nothing along the views; the mean image-up stays
     facade = [look_at((x, -5.0, 1.0), target=(x, 0.0, 1.5)) for x in np.linspace(-2, 2, 5)]
     cams = Cameras.create(torch.stack(facade), 100.0, 100.0, 50.0, 50.0, 100, 100, dtype=torch.float64)

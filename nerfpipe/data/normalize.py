@@ -74,10 +74,70 @@ def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
             break
         sideways = (axes_y @ least).abs() < (axes_x @ least).abs()
     cos = float(least @ mean_up) / max(float(mean_up.norm()), 1e-12)
-    if decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
+    trusted = decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT))
+    cost = _roll_cost(rot, least)
+    if trusted and cost < UPRIGHT_ROLL_COST:
+        return least
+    turned = _upright_of_turned(rot, cameras.forward.double().reshape(-1, 3))
+    if turned is not None and (not trusted or _roll_cost(rot, turned) < cost - UPRIGHT_ROLL_COST):
+        return turned
+    if trusted:
         return least
     plane = vectors[:, :2] @ vectors[:, :2].T @ mean_up
     return plane / plane.norm() if plane.norm() > 1e-6 else mean_up / mean_up.norm().clamp_min(1e-12)
+
+
+UPRIGHT_ROLL_COST = 0.01
+"""Mean squared sine of the cameras' roll (:func:`_roll_cost`: each camera's image axis nearer horizontal, against a
+direction taken for up) below which :func:`upright_direction`'s estimate is taken as it is (0.01: about 6 degrees of roll;
+the shared real captures 0.0003-0.003); above it the search for photographs stored sideways may replace it, where its
+own is lower by as much (a ring of cameras all stored sideways and looking down had an estimate 16 degrees off that the
+mean image-up, horizontal for them, could not refuse)."""
+
+UPRIGHT_SEARCH_DIRECTIONS = 2048
+"""Directions of the half sphere tried by :func:`_upright_of_turned`."""
+
+
+def _roll_cost(rot: Float[Tensor, "n 3 3"], up: Float[Tensor, "3"]) -> float:
+    """``min((x.up)^2, (y.up)^2)`` averaged over the cameras: 0 where every camera has one image axis horizontal."""
+    return float(torch.minimum((rot[:, :, 0] @ up) ** 2, (rot[:, :, 1] @ up) ** 2).mean())
+
+
+def _upright_of_turned(rot: Float[Tensor, "n 3 3"], forward: Float[Tensor, "n 3"]) -> "Float[Tensor, '3'] | None":
+    """:func:`upright_direction` where many photographs are stored sideways (a half, or all: a phone held upright whose
+    pixels are stored as the sensor reads them), so that neither every camera's right axis nor the mean image-up
+    is a start the per-camera choice can recover from. Up is sought as the direction most orthogonal to one image
+    axis of every camera (``min((x.u)^2, (y.u)^2)`` summed, over a Fibonacci half sphere), then refined as
+    :func:`upright_direction` does from the axes that choice makes horizontal. Trusted only where the mean of the cameras'
+    other axes (each turned towards it) lies within :data:`UPRIGHT_MAX_TILT` of it (a facade's one-way views do not: None). Its
+    sign: the image-up of the cameras taken upright, where some are; else the one that has the cameras look down
+    on average (an object photographed from above)."""
+    n = UPRIGHT_SEARCH_DIRECTIONS
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = i / n  # the half sphere z > 0: u and -u are the same axis here
+    ring = torch.sqrt(1 - z * z)
+    phi = i * math.pi * (3 - math.sqrt(5))
+    dirs = torch.stack([ring * torch.cos(phi), ring * torch.sin(phi), z], -1)
+    axes_x, axes_y = rot[:, :, 0], rot[:, :, 1]
+    cost = torch.minimum((axes_x @ dirs.T) ** 2, (axes_y @ dirs.T) ** 2).mean(0)
+    u = dirs[int(cost.argmin())]
+    for _ in range(4):
+        sideways = (axes_y @ u).abs() < (axes_x @ u).abs()
+        horizontal = torch.where(sideways[:, None], axes_y, axes_x)
+        values, vectors = torch.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
+        if not (values[1] > 0.02 and values[0] < 0.25 * values[1]):
+            return None
+        u = vectors[:, 0]
+    sideways = (axes_y @ u).abs() < (axes_x @ u).abs()
+    other = torch.where(sideways[:, None], axes_x, axes_y)  # each camera's image-up axis, up to its sign
+    mean_up = (other * torch.sign(other @ u)[:, None]).mean(0)  # each turned towards u, then averaged
+    if float(mean_up @ u) < math.cos(math.radians(UPRIGHT_MAX_TILT)) * float(mean_up.norm()):
+        return None
+    if bool((~sideways).any()):
+        sign = -float((axes_y[~sideways] @ u).sum())  # the upright ones' image-up is -y
+    else:
+        sign = -float((forward @ u).sum())
+    return u if sign >= 0 else -u
 
 
 def auto_normalization(cameras: Cameras, center: "Float[Tensor, '3'] | None" = None) -> Similarity:
