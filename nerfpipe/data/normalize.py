@@ -74,25 +74,20 @@ def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
             break
         sideways = (axes_y @ least).abs() < (axes_x @ least).abs()
     cos = float(least @ mean_up) / max(float(mean_up.norm()), 1e-12)
-    trusted = decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT))
-    cost = _roll_cost(rot, least)
-    if trusted and cost < UPRIGHT_ROLL_COST:
+    if decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
         return least
     turned = _upright_of_turned(rot, cameras.forward.double().reshape(-1, 3))
-    if turned is not None and (not trusted or _roll_cost(rot, turned) < cost - UPRIGHT_ROLL_COST):
+    if turned is not None:
         return turned
-    if trusted:
-        return least
     plane = vectors[:, :2] @ vectors[:, :2].T @ mean_up
     return plane / plane.norm() if plane.norm() > 1e-6 else mean_up / mean_up.norm().clamp_min(1e-12)
 
 
-UPRIGHT_ROLL_COST = 0.01
-"""Mean squared sine of the cameras' roll (:func:`_roll_cost`: each camera's image axis nearer horizontal, against a
-direction taken for up) below which :func:`upright_direction`'s estimate is taken as it is (0.01: about 6 degrees of roll;
-the shared real captures 0.0003-0.003); above it the search for photographs stored sideways may replace it, where its
-own is lower by as much (a ring of cameras all stored sideways and looking down had an estimate 16 degrees off that the
-mean image-up, horizontal for them, could not refuse)."""
+UPRIGHT_ROLL_COST = 0.02
+"""The most :func:`_roll_cost` (the mean squared sine of the cameras' roll: each camera's image axis nearer horizontal,
+against the direction taken for up) that :func:`_upright_of_turned` accepts: about 8 degrees of roll. colmap_mouse's
+cameras 0.014 against their up, with any share of them turned sideways; a reconstruction with half its photos folded
+80 degrees 0.03-0.06 at the best direction (not a capture of turned photos: the mean image-up stays)."""
 
 UPRIGHT_SEARCH_DIRECTIONS = 2048
 """Directions of the half sphere tried by :func:`_upright_of_turned`."""
@@ -132,6 +127,8 @@ def _upright_of_turned(rot: Float[Tensor, "n 3 3"], forward: Float[Tensor, "n 3"
     other = torch.where(sideways[:, None], axes_x, axes_y)  # each camera's image-up axis, up to its sign
     mean_up = (other * torch.sign(other @ u)[:, None]).mean(0)  # each turned towards u, then averaged
     if float(mean_up @ u) < math.cos(math.radians(UPRIGHT_MAX_TILT)) * float(mean_up.norm()):
+        return None
+    if _roll_cost(rot, u) > UPRIGHT_ROLL_COST:  # no direction leaves one axis of every camera level: a fold, not photos turned
         return None
     if bool((~sideways).any()):
         sign = -float((axes_y[~sideways] @ u).sum())  # the upright ones' image-up is -y
