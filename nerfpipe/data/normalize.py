@@ -66,13 +66,11 @@ def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
     axes_x, axes_y = rot[:, :, 0], rot[:, :, 1]
     sideways = torch.zeros(len(rot), dtype=torch.bool)  # first every camera upright, then re-chosen
     for _ in range(4):
-        horizontal = torch.where(sideways[:, None], axes_y, axes_x)
-        values, vectors = torch.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
+        decided, vectors = _normal_of_horizontals(axes_x, axes_y, sideways)
         least = vectors[:, 0] * (1.0 if float(vectors[:, 0] @ mean_up) >= 0 else -1.0)
-        decided = bool(values[1] > 0.02 and values[0] < 0.25 * values[1])  # one clear least direction
         if not decided:
             break
-        sideways = (axes_y @ least).abs() < (axes_x @ least).abs()
+        sideways = _turned(axes_x, axes_y, least)
     cos = float(least @ mean_up) / max(float(mean_up.norm()), 1e-12)
     if decided and cos > math.cos(math.radians(UPRIGHT_MAX_TILT)):
         return least
@@ -84,7 +82,7 @@ def upright_direction(cameras: Cameras) -> Float[Tensor, "3"]:
 
 
 UPRIGHT_ROLL_COST = 0.02
-"""The most :func:`_roll_cost` (the mean squared sine of the cameras' roll: each camera's image axis nearer horizontal,
+"""The most :func:`_roll_costs` (the mean squared sine of the cameras' roll: each camera's image axis nearer horizontal,
 against the direction taken for up) that :func:`_upright_of_turned` accepts: about 8 degrees of roll. colmap_mouse's
 cameras 0.014 against their up, with any share of them turned sideways; a reconstruction with half its photos folded
 80 degrees 0.03-0.06 at the best direction (not a capture of turned photos: the mean image-up stays)."""
@@ -93,9 +91,23 @@ UPRIGHT_SEARCH_DIRECTIONS = 2048
 """Directions of the half sphere tried by :func:`_upright_of_turned`."""
 
 
-def _roll_cost(rot: Float[Tensor, "n 3 3"], up: Float[Tensor, "3"]) -> float:
-    """``min((x.up)^2, (y.up)^2)`` averaged over the cameras: 0 where every camera has one image axis horizontal."""
-    return float(torch.minimum((rot[:, :, 0] @ up) ** 2, (rot[:, :, 1] @ up) ** 2).mean())
+def _normal_of_horizontals(axes_x: Float[Tensor, "n 3"], axes_y: Float[Tensor, "n 3"], sideways: "Tensor") -> "tuple[bool, Tensor]":
+    """Whether the cameras' horizontal axes (``+y`` where ``sideways``, else ``+x``) have one clear least direction,
+    and the eigenvectors of their scatter (least first: the up they give, unsigned)."""
+    horizontal = torch.where(sideways[:, None], axes_y, axes_x)
+    values, vectors = torch.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
+    return bool(values[1] > 0.02 and values[0] < 0.25 * values[1]), vectors
+
+
+def _turned(axes_x: Float[Tensor, "n 3"], axes_y: Float[Tensor, "n 3"], up: Float[Tensor, "3"]) -> "Tensor":
+    """Per camera, whether its down axis (+y) is the more horizontal one given ``up``: a photo stored sideways."""
+    return (axes_y @ up).abs() < (axes_x @ up).abs()
+
+
+def _roll_costs(rot: Float[Tensor, "n 3 3"], ups: Float[Tensor, "k 3"]) -> Float[Tensor, "k"]:
+    """``min((x.up)^2, (y.up)^2)`` averaged over the cameras, for each of ``ups``: 0 where every camera has one image
+    axis horizontal."""
+    return torch.minimum((rot[:, :, 0] @ ups.T) ** 2, (rot[:, :, 1] @ ups.T) ** 2).mean(0)
 
 
 def _upright_of_turned(rot: Float[Tensor, "n 3 3"], forward: Float[Tensor, "n 3"]) -> "Float[Tensor, '3'] | None":
@@ -114,21 +126,18 @@ def _upright_of_turned(rot: Float[Tensor, "n 3 3"], forward: Float[Tensor, "n 3"
     phi = i * math.pi * (3 - math.sqrt(5))
     dirs = torch.stack([ring * torch.cos(phi), ring * torch.sin(phi), z], -1)
     axes_x, axes_y = rot[:, :, 0], rot[:, :, 1]
-    cost = torch.minimum((axes_x @ dirs.T) ** 2, (axes_y @ dirs.T) ** 2).mean(0)
-    u = dirs[int(cost.argmin())]
+    u = dirs[int(_roll_costs(rot, dirs).argmin())]
     for _ in range(4):
-        sideways = (axes_y @ u).abs() < (axes_x @ u).abs()
-        horizontal = torch.where(sideways[:, None], axes_y, axes_x)
-        values, vectors = torch.linalg.eigh(horizontal.T @ horizontal / len(horizontal))
-        if not (values[1] > 0.02 and values[0] < 0.25 * values[1]):
+        decided, vectors = _normal_of_horizontals(axes_x, axes_y, _turned(axes_x, axes_y, u))
+        if not decided:
             return None
         u = vectors[:, 0]
-    sideways = (axes_y @ u).abs() < (axes_x @ u).abs()
+    sideways = _turned(axes_x, axes_y, u)
     other = torch.where(sideways[:, None], axes_x, axes_y)  # each camera's image-up axis, up to its sign
     mean_up = (other * torch.sign(other @ u)[:, None]).mean(0)  # each turned towards u, then averaged
     if float(mean_up @ u) < math.cos(math.radians(UPRIGHT_MAX_TILT)) * float(mean_up.norm()):
         return None
-    if _roll_cost(rot, u) > UPRIGHT_ROLL_COST:  # no direction leaves one axis of every camera level: a fold, not photos turned
+    if float(_roll_costs(rot, u[None])[0]) > UPRIGHT_ROLL_COST:  # no direction leaves one axis of every camera level: a fold, not photos turned
         return None
     if bool((~sideways).any()):
         sign = -float((axes_y[~sideways] @ u).sum())  # the upright ones' image-up is -y
