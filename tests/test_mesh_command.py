@@ -1,5 +1,6 @@
 """``nerfpipe mesh`` on a stand-in run (an analytic sphere model) and ``nerfpipe eval-mesh``."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -167,7 +168,12 @@ def test_tsdf_render_budget_keeps_a_reserve_that_grows_with_the_time_left():
     assert views.render_budget(21.5) == pytest.approx(0.6 * 11.5)  # session 68's starved fox: 8 views of 105 px before
     assert views.render_budget(80.0) == pytest.approx(0.6 * 56.0)
     assert views.render_budget(5.0) == 0.0
-    for name, value in (("fixed_share", 1.0), ("budget_share", 0.0), ("fixed_seconds", -1.0)):
+    # what fusion may give: as many faces as the reserve has time for at seconds_per_face each
+    per_face = dataclasses.replace(views, seconds_per_face=40e-6)
+    assert per_face.max_faces(None) is None
+    assert per_face.max_faces(18.6) == round(10.0 / 40e-6)  # the demo under --time-budget 60: 250,000 (530,000 before)
+    assert per_face.max_faces(80.0) == round(24.0 / 40e-6)
+    for name, value in (("fixed_share", 1.0), ("budget_share", 0.0), ("fixed_seconds", -1.0), ("seconds_per_face", 0.0)):
         with pytest.raises(NerfpipeError, match=name.replace("_", "-")):
             RenderedViews(**{name: value})
 

@@ -79,6 +79,25 @@ def test_tsdf_of_ray_cast_depth_maps(scene):
     assert m.accuracy < 0.8 * worse.accuracy
 
 
+def test_tsdf_caps_its_faces_by_fusing_the_same_frames_again_with_coarser_voxels(scene):
+    """``max_faces`` (a time budget's cap on what follows fusion): a surface of more faces is fused again, each frame
+    rendered once, with voxels as much larger as bring the faces near the cap, no larger than ``max_voxel_size``; the
+    surface stays on the scene."""
+    cfg = synthetic.SynthConfig(views=12, width=64, height=64, min_elevation_deg=-60.0)
+    cams = synthetic.orbit_cameras(cfg)
+    frame, calls = _frames(scene, cams), []
+    counted = lambda i: (calls.append(i), frame(i))[1]  # noqa: E731
+    full = tsdf_fuse(cams, frame, BOX, voxel_size=0.015)
+    capped = tsdf_fuse(cams, counted, BOX, voxel_size=0.015, max_faces=full.num_faces // 3)
+    assert sorted(calls) == list(range(len(cams)))
+    assert capped.info["voxel_size"] == pytest.approx(0.015 * (1.05 * full.num_faces / (full.num_faces // 3)) ** 0.5)
+    assert 0.2 * full.num_faces < capped.num_faces <= 1.1 * (full.num_faces // 3)  # about the cap: faces ~ 1 / voxel²
+    assert compare_meshes(capped, scene[2], num_samples=50_000).fscore >= 0.9
+    limited = tsdf_fuse(cams, frame, BOX, voxel_size=0.015, max_faces=10, max_voxel_size=0.02)
+    assert limited.info["voxel_size"] == 0.02 and limited.num_faces > full.num_faces // 3
+    assert tsdf_fuse(cams, frame, BOX, voxel_size=0.015, max_faces=full.num_faces).num_faces == full.num_faces
+
+
 def test_tsdf_rejects_distorted_cameras_and_empty_depth(scene):
     cams = synthetic.orbit_cameras(synthetic.SynthConfig(views=4, width=32, height=32))
     distorted = dataclasses.replace(cams, distortion=torch.ones_like(cams.distortion))

@@ -219,7 +219,7 @@ class MeshOutputs:
     figures: dict = field(default_factory=dict)
 
 
-def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures) -> TriangleMesh:
+def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures, max_faces: "int | None" = None) -> TriangleMesh:
     if cfg.method == "mc":
         if density_fn is None:
             raise NerfpipeError("marching cubes needs a density field")
@@ -232,9 +232,12 @@ def _extract(cfg: MeshConfig, aabb, density_fn, occupancy_fn, frame_fn, cameras,
         return res.mesh
     if frame_fn is None or cameras is None:
         raise NerfpipeError("TSDF fusion needs rendered depth and the training cameras")
-    voxel = float((aabb[1] - aabb[0]).max()) / cfg.resolution
-    figures.update(voxel_size=voxel, resolution=cfg.resolution)
-    return tsdf_fuse(cameras, frame_fn, aabb, voxel)
+    side = float((aabb[1] - aabb[0]).max())
+    coarsest = side / min(cfg.resolution, min(BUDGET_RESOLUTIONS))
+    mesh = tsdf_fuse(cameras, frame_fn, aabb, side / cfg.resolution, max_faces=max_faces, max_voxel_size=coarsest)
+    voxel = mesh.info["voxel_size"]
+    figures.update(voxel_size=voxel, resolution=round(side / voxel), max_faces=max_faces)
+    return mesh
 
 
 def _level(cfg: MeshConfig, volume: Volume, density_fn, surface, figures: dict) -> float:
@@ -368,6 +371,7 @@ def build_meshes(
     surface_origins: "Float[Tensor, 'num_points 3'] | None" = None,
     sight_lines=None,
     support: "Float[np.ndarray, '4'] | None" = None,
+    max_faces: "int | None" = None,
 ) -> MeshOutputs:
     """Extract, clean, colour and simplify, all in the world frame; writes nothing.
 
@@ -385,13 +389,16 @@ def build_meshes(
             (:class:`nerfpipe.mesh.reference.SightLines`): support plane and fog removal.
         support: the plane the object stands on where the sparse points give it (world frame, ``a x + b y + c z + d``
             positive on the cameras' side; ``MeshConfig.support_from_points``).
+        max_faces: tsdf: at most about this many faces come out of fusion (what follows takes a time about
+            proportional to them: a time budget's cap), by coarser voxels, down to the coarsest of
+            :data:`BUDGET_RESOLUTIONS` along the box (``tsdf_fuse``); mesh.json's ``resolution`` is the one used.
     """
     if cfg.faces is not None and cfg.faces < 4:
         raise NerfpipeError(f"--faces must be at least 4, got {cfg.faces}")
     figures: dict = {"method": cfg.method}
     t0 = time.perf_counter()
     surface = None if surface_points is None else (surface_points, surface_origins)
-    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures)
+    mesh = _extract(cfg, aabb, density_fn, occupancy_fn, frame_fn, cameras, surface, figures, max_faces)
     t1 = time.perf_counter()
     figures["box_world"] = aabb.tolist()
     mesh = _clean(mesh, cfg, cameras, figures, aabb, sight_lines, support)

@@ -41,11 +41,31 @@ class RenderedViews:
     longer to clean and simplify): with 40 s left the renders get what the 20 s reserve gave them (16.8 against 16 s),
     with more they get less (80 s left: 33.6 against 48 s; colmap_mouse's 48 renders took 20 s)."""
 
+    seconds_per_face: float = 40e-6
+    """Under a time budget, what the rest of the mesh stage takes per face that fusion gives (cleaning, simplification,
+    metrics, writing: the stage's seconds less its renders), used to cap the faces at what fits the reserve
+    (:meth:`max_faces`). Measured on 2 cores: 35 and 49 microseconds on the synthetic demo (530,000 and 637,000
+    faces), 40 on colmap_mouse (174,000), 35 on 23 of ngp_fox's photos (177,000), 29-31 on two stand-ins of the
+    figurine capture (186,000 and 277,000)."""
+
+    def reserve(self, seconds: float) -> float:
+        """What the stage keeps, of ``seconds`` left, for all but the renders (``fixed_seconds``, or ``fixed_share`` of them)."""
+        return max(self.fixed_seconds, self.fixed_share * seconds)
+
     def render_budget(self, seconds: "float | None") -> "float | None":
         """Seconds the TSDF depth renders may take with ``seconds`` left for the mesh stage (None: no budget)."""
         if seconds is None:
             return None
-        return self.budget_share * max(seconds - max(self.fixed_seconds, self.fixed_share * seconds), 0.0)
+        return self.budget_share * max(seconds - self.reserve(seconds), 0.0)
+
+    def max_faces(self, seconds: "float | None") -> "int | None":
+        """The faces fusion may give with ``seconds`` left for the mesh stage: as many as the reserve has time for
+        (None: no budget). The synthetic demo under ``--time-budget 60`` (session 69): with 18.6-19.0 s left, 250,000;
+        its 256-voxel fusion of 530,000 faces is fused again at 173 voxels (232,000 faces): the stage took 16.3 s
+        instead of 24.2 (the rest 10.4 s instead of 18.7), the run 58.7 s instead of 65.5, F-score@1 % 0.940 against 0.945."""
+        if seconds is None:
+            return None
+        return max(round(self.reserve(seconds) / self.seconds_per_face), 1)
 
     def __post_init__(self) -> None:
         refuse_unless((
@@ -54,6 +74,7 @@ class RenderedViews:
             ("budget_share", 0 < self.budget_share <= 1, "in (0, 1]", self.budget_share),
             ("fixed_seconds", self.fixed_seconds >= 0, "0 or more", self.fixed_seconds),
             ("fixed_share", 0 <= self.fixed_share < 1, "in [0, 1)", self.fixed_share),
+            ("seconds_per_face", self.seconds_per_face > 0, "positive", self.seconds_per_face),
             ("chunk", self.chunk is None or self.chunk >= 1, "at least 1", self.chunk),
         ))  # fmt: skip
 
@@ -84,7 +105,7 @@ def mesh_model(
     with torch.no_grad():
         out = build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
                             cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
-                            sight_lines=lines, support=known_support(model))
+                            sight_lines=lines, support=known_support(model), max_faces=views.max_faces(seconds) if cfg.method == "tsdf" else None)
     if tsdf_cams is not None:
         size = int(torch.maximum(tsdf_cams.width, tsdf_cams.height).max())
         out.figures.update(seconds_tsdf_renders=frame_fn.seconds(), tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))

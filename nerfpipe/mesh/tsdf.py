@@ -12,7 +12,7 @@ projects to ``u = fx x/z + cx`` and reads pixel ``floor(u)``, so pixel ``j`` cov
 unchanged. Fusion is pinhole only: cameras must have no distortion (render undistorted views).
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
@@ -58,6 +58,8 @@ def tsdf_fuse(
     depth_max: float = 1e3,
     min_weight: float = 1.0,
     indices: "list[int] | None" = None,
+    max_faces: "int | None" = None,
+    max_voxel_size: "float | None" = None,
 ) -> TriangleMesh:
     """Fuse depth (and colour) of ``cameras[indices]`` into a TSDF and extract its surface.
 
@@ -70,19 +72,38 @@ def tsdf_fuse(
         depth_max: depths beyond this are ignored.
         min_weight: voxels observed by fewer frames are left out of the surface.
         indices: camera indices to fuse (default all).
+        max_faces: where the surface has more faces than this (what follows fusion, cleaning and simplification,
+            takes a time about proportional to them), the same frames are fused again with voxels as much larger as
+            brings the faces to about this many (faces go with the inverse square of the voxel size), but no larger
+            than ``max_voxel_size``; ``mesh.info["voxel_size"]`` is the size used.
+        max_voxel_size: the coarsest voxel ``max_faces`` may lead to (default: no limit).
 
     Raises:
         NerfpipeError: distorted cameras, or no surface.
     """
-    o3d = require("open3d", "mesh")
     if cameras.has_distortion():
         raise NerfpipeError("TSDF fusion needs pinhole cameras: render undistorted depth maps (set distortion to NONE)")
+    frames = ((i, *frame_fn(i)) for i in (range(len(cameras)) if indices is None else indices))  # rendered as fused
+    if max_faces is not None:
+        frames = list(frames)  # kept for a second fusion
+    mesh = _fuse(cameras, frames, aabb, voxel_size, trunc_voxels, depth_max, min_weight)
+    if max_faces is not None and mesh.num_faces > max_faces:
+        coarser = voxel_size * (1.05 * mesh.num_faces / max(max_faces, 1)) ** 0.5
+        coarser = coarser if max_voxel_size is None else min(coarser, max_voxel_size)
+        if coarser > voxel_size:
+            mesh = _fuse(cameras, frames, aabb, coarser, trunc_voxels, depth_max, min_weight)
+    return mesh
+
+
+def _fuse(cameras: Cameras, frames: "Iterable[tuple[int, np.ndarray, np.ndarray | None]]", aabb: Float[Tensor, "2 3"], voxel_size: float, trunc_voxels: float, depth_max: float,
+          min_weight: float) -> TriangleMesh:
+    """:func:`tsdf_fuse` of ``frames`` (``(camera index, depth, rgb)``) at one voxel size."""
+    o3d = require("open3d", "mesh")
     margin = trunc_voxels * voxel_size
     lo, hi = aabb[0].double() - margin, aabb[1].double() + margin
     vbg = _voxel_block_grid(o3d, voxel_size, _block_budget(hi - lo, voxel_size))
     has_color, fused = False, 0
-    for i in range(len(cameras)) if indices is None else indices:
-        depth, rgb = frame_fn(i)
+    for i, depth, rgb in frames:
         depth = _mask_outside(np.asarray(depth, dtype=np.float64), cameras, i, lo, hi)
         if not (depth > 0).any():
             continue

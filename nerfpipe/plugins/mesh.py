@@ -10,8 +10,9 @@ for ``mesh.ply``: F-score at 1% of the reference's diagonal, Chamfer-L1, accurac
 (against the mesh) and the fraction of sparse points within the threshold.
 
 Under a time budget (``ctx.time_left()``) the marching-cubes resolution is lowered (256 -> 192 -> 128)
-when the estimated cost does not fit half the time left; mesh.json records ``resolution`` and
-``resolution_requested``.
+when the estimated cost does not fit half the time left; TSDF fusion (the default) renders the views that fit and
+fuses coarser voxels where its faces would not fit the stage's reserve (:meth:`RenderedViews.max_faces`). mesh.json
+records ``resolution`` and ``resolution_requested``.
 """
 
 import dataclasses
