@@ -123,9 +123,15 @@ MIN_FINAL_VIEWS = 4
 MIN_VIDEO_FRAMES = 12
 """Under a budget, the videos keep at least this many frames (smaller ones when they do not fit; none when even
 that does not fit)."""
-VALIDATION_SHARE = 0.1
+VALIDATION_SHARE = 0.05
 """Under a wall-clock budget, intermediate validations are skipped while they have taken more than this share
-of the time so far (and there is none at step 0, where an untrained model renders slowest)."""
+of the time so far (and there is none at step 0, where an untrained model renders slowest). 0.1 until session 69,
+when the intermediate validations rendered 2 x 2 rays per pixel where the final one does: on colmap_mouse under
+``nerfpipe run --time-budget 300`` four of them took about 18 s of the 183 s training window (157 s of steps)."""
+INTERMEDIATE_SUPERSAMPLE = 1
+"""Rays per pixel side of the intermediate validations (the final one renders ``TrainerConfig.eval_supersample``):
+they show progress, time a rendered ray for the final evaluation's plan and watch the held-out figure fall
+(:func:`held_out_fall`, which compares them with each other only); 2 x 2 rays made each four times dearer."""
 FINAL_MAX_SHARE = 0.4
 """Under a wall-clock budget, the share of it kept for what follows training at most: where the final evaluation of
 every view (:func:`final_eval_need`) needs more than :data:`FINAL_SHARE` and at most this, training leaves it that;

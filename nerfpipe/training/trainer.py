@@ -256,7 +256,8 @@ class TrainerConfig:
     eval_every: int = 100
     """Validate every this many iterations (0: only at the end)."""
     eval_views: int = 1
-    """Validation views rendered at each intermediate validation (the first ones of the val split)."""
+    """Validation views rendered at each intermediate validation (the first ones of the val split; one ray per pixel:
+    ``evaluation.INTERMEDIATE_SUPERSAMPLE``)."""
     final_eval_views: int = 0
     """Validation views for the final metrics (0: all of the val split)."""
     eval_scale: float = 1.0
@@ -760,7 +761,7 @@ class Trainer:
         self.model.train()
         with TrainProgress(self.cfg, self.step, self.train_seconds, self.training_window()) if writer else _Quiet() as bar:
             if self.step == 0 and self.cfg.eval_every and writer and evaluation.validation_due(self):
-                evaluation.validate(self, self.cfg.eval_views)  # the starting point of the curves
+                evaluation.validate(self, self.cfg.eval_views, supersample=evaluation.INTERMEDIATE_SUPERSAMPLE)  # the starting point of the curves
             while not self.done():
                 t0 = self.clock()
                 mse = self.train_step()
@@ -800,7 +801,7 @@ class Trainer:
         if (every and self.step % every == 0) or (ck and self.step % ck == 0):
             self.flush_losses(bar)  # validation and checkpoints see every step's loss
         if every and self.step % every == 0 and not self.done() and self.world.writer and evaluation.validation_due(self):
-            psnr, ssim = evaluation.validate(self, self.cfg.eval_views)
+            psnr, ssim = evaluation.validate(self, self.cfg.eval_views, supersample=evaluation.INTERMEDIATE_SUPERSAMPLE)
             bar.log(f"step {self.step}: val PSNR {psnr:.2f} dB, SSIM {ssim:.3f} ({self.train_seconds:.0f} s training)")
         if ck and self.step % ck == 0:
             self.save()
