@@ -30,13 +30,14 @@ def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_second
 
     Args:
         out: run folder; the scene is generated into OUT/synthetic_scene. A fresh run each time.
-        time_budget: seconds the whole pipeline may take; training gets at most 60% of what is left.
+        time_budget: seconds the whole command may take (the scene's generation included); training gets at most 60% of what is left.
         train_seconds: cap on the training time (validation excluded).
         views: number of cameras of the scene.
         seed: seed of the scene.
         device: torch device (auto: CUDA when present, else CPU; printed at start).
     """
     from nerfpipe.commands.run import _console, _log_to, installed_stages, run_and_print
+    from nerfpipe.commands.train import budget_start
     from nerfpipe.data.synthetic import SynthConfig, generate
     from nerfpipe.pipeline.stages import DEFAULT_CHAIN, Pipeline
     from nerfpipe.util.devices import check_device
@@ -52,5 +53,6 @@ def demo(out: Path = Path("runs/demo"), time_budget: float = 300.0, train_second
     scene = generate(Path(out) / "synthetic_scene", SynthConfig(layout="colmap", views=views, seed=seed), overwrite=True)
     console.print(f"synthetic scene: {scene.path} ({views} views, {scene.num_points} sparse points, gt_mesh.ply)")
     pipe = Pipeline(list(DEFAULT_CHAIN), demo_configs(train_seconds), registry=installed_stages(console))
-    run_and_print(pipe, scene.path, Path(out), console, resume=False, device=device, time_budget=time_budget)
+    run_and_print(pipe, scene.path, Path(out), console, resume=False, device=device, time_budget=time_budget,
+                  started=budget_start())  # from the command's start (the scene's generation included) to its exit, as `nerfpipe run`
     return 0
