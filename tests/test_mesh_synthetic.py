@@ -98,6 +98,23 @@ def test_tsdf_caps_its_faces_by_fusing_the_same_frames_again_with_coarser_voxels
     assert tsdf_fuse(cams, frame, BOX, voxel_size=0.015, max_faces=full.num_faces).num_faces == full.num_faces
 
 
+def test_tsdf_keeps_its_first_surface_where_the_coarser_fusion_finds_none(scene, monkeypatch):
+    """A surface too thin for the coarser voxels (the second fusion raises): the first fusion's mesh is returned."""
+    from nerfpipe.mesh import tsdf
+
+    cams = synthetic.orbit_cameras(synthetic.SynthConfig(views=6, width=48, height=48, min_elevation_deg=-60.0))
+    frame, fuse = _frames(scene, cams), tsdf._fuse
+
+    def finer_only(cameras, frames, aabb, voxel_size, *args):
+        if voxel_size > 0.03:
+            raise NerfpipeError("TSDF fusion produced no surface inside the scene box")
+        return fuse(cameras, frames, aabb, voxel_size, *args)
+
+    monkeypatch.setattr(tsdf, "_fuse", finer_only)
+    mesh = tsdf_fuse(cams, frame, BOX, voxel_size=0.03, max_faces=10)
+    assert mesh.info["voxel_size"] == 0.03 and mesh.num_faces > 10
+
+
 def test_tsdf_rejects_distorted_cameras_and_empty_depth(scene):
     cams = synthetic.orbit_cameras(synthetic.SynthConfig(views=4, width=32, height=32))
     distorted = dataclasses.replace(cams, distortion=torch.ones_like(cams.distortion))

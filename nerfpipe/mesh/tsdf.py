@@ -91,7 +91,10 @@ def tsdf_fuse(
         coarser = voxel_size * (1.05 * mesh.num_faces / max(max_faces, 1)) ** 0.5
         coarser = coarser if max_voxel_size is None else min(coarser, max_voxel_size)
         if coarser > voxel_size:
-            mesh = _fuse(cameras, frames, aabb, coarser, trunc_voxels, depth_max, min_weight)
+            try:
+                mesh = _fuse(cameras, frames, aabb, coarser, trunc_voxels, depth_max, min_weight)
+            except NerfpipeError:  # a surface too thin for the coarser voxels: the finer one stays
+                pass
     return mesh
 
 
