@@ -45,8 +45,8 @@ class RenderedViews:
     """Under a time budget, what the rest of the mesh stage takes per face that fusion gives (cleaning, simplification,
     metrics, writing: the stage's seconds less its renders), used to cap the faces at what fits the reserve
     (:meth:`max_faces`). Measured on 2 cores: 35 and 49 microseconds on the synthetic demo (530,000 and 637,000
-    faces), 40 on colmap_mouse (174,000), 35 on 23 of ngp_fox's photos (177,000), 29-31 on two stand-ins of the
-    figurine capture (186,000 and 277,000)."""
+    faces), 40 on colmap_mouse (174,000), 35 on 23 of ngp_fox's photos (177,000), 29 and 31 on colmap_mouse's posed
+    23-photo cut (186,000) and its stand-in with every other photo stored sideways (277,000)."""
 
     def reserve(self, seconds: float) -> float:
         """What the stage keeps, of ``seconds`` left, for all but the renders (``fixed_seconds``, or ``fixed_share`` of them)."""
