@@ -105,7 +105,7 @@ def mesh_model(
     with torch.no_grad():
         out = build_meshes(cfg, aabb, density_fn=model.density_fn, rgb_fn=model.rgb_fn, occupancy_fn=occupancy_fn, frame_fn=frame_fn,
                             cameras=tsdf_cams if tsdf_cams is not None else train, surface_points=points, surface_origins=origins,
-                            sight_lines=lines, support=known_support(model), max_faces=views.max_faces(seconds) if cfg.method == "tsdf" else None)
+                            sight_lines=lines, support=known_support(model), max_faces=views.max_faces(seconds))
     if tsdf_cams is not None:
         size = int(torch.maximum(tsdf_cams.width, tsdf_cams.height).max())
         out.figures.update(seconds_tsdf_renders=frame_fn.seconds(), tsdf_views=len(tsdf_cams), tsdf_views_requested=views.tsdf_views, tsdf_size=size, tsdf_size_requested=views.tsdf_size, stop_opacity=getattr(getattr(model, "cfg", None), "stop_opacity", None))
