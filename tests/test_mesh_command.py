@@ -76,6 +76,7 @@ def test_mesh_command_writes_the_outputs_in_the_input_frame(fake_run, method, ca
     assert len(small.faces) <= 1500 and figures["hausdorff_max"] > 0
     assert abs(full.visual.vertex_colors[:, 2].astype(float).mean() - 0.9 * 255) < 15
     assert figures["smooth_steps"] == (1 if method == "tsdf" else 0)  # the TSDF surface's ripple; mc's level set is smooth
+    assert method == "mc" or figures["truncation_voxels"] == 4.0
 
 
 def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
@@ -86,6 +87,8 @@ def test_mesh_command_bad_input_leaves_nothing(fake_run, capsys):
     assert "not below" in capsys.readouterr().err
     assert main(["mesh", str(fake_run), "--resolution", "32", "--smooth", "-1"]) == 2
     assert "smooth" in capsys.readouterr().err
+    assert main(["mesh", str(fake_run), "--resolution", "32", "--truncation", "0"]) == 2
+    assert "truncation" in capsys.readouterr().err
     assert not (fake_run / "mesh").exists()
 
 

@@ -73,6 +73,8 @@ def test_tsdf_of_ray_cast_depth_maps(scene):
     m = compare_meshes(mesh, scene[2], num_samples=50_000)
     assert m.fscore >= 0.95
     assert mesh.vertex_colors is not None and mesh.vertex_colors.std() > 10
+    wide = tsdf_fuse(cams, frame, BOX, voxel_size=0.02, trunc_voxels=8.0)  # MeshConfig.truncation: consistent depths, the same surface
+    assert wide.num_faces != mesh.num_faces and compare_meshes(wide, scene[2], num_samples=50_000).fscore >= 0.95
     # the pixel convention: K passes through unchanged; half a pixel off is measurably worse
     shifted = dataclasses.replace(cams, cx=cams.cx + 0.5, cy=cams.cy + 0.5)
     worse = compare_meshes(tsdf_fuse(shifted, frame, BOX, voxel_size=0.02), scene[2], num_samples=50_000)
