@@ -101,7 +101,7 @@ depth pictures, few in the second's; 0.262: 20.36 / **21.11** and 23.17 / **24.1
 itself (0.210): **24.88** / 23.96 and 24.16 / 24.00, hence a threshold above it. The codes and the sky residual of
 photo collections cost a single session dearly: the fields behind the box and of the table took each photo's light and
 their mean rendered a washed-out table: all on (``appearance=True``) 19.16 / 21.06 dB at 0.354 and 20.91 / 20.59 on
-colmap_mouse, the affine maps with the sky residual 19.33 / 21.66 and 21.70 / 21.46. See the README's session-65 row."""
+colmap_mouse, the affine maps with the sky residual 19.33 / 21.66 and 21.70 / 21.46. See the session-65 row of docs/measured.md."""
 
 
 def photo_collection(info: SceneInfo) -> bool:
@@ -130,7 +130,7 @@ right halves appearance fitted, none / 32 / 16 rows: 14.99 / 15.77 / **15.87** d
 15.76 after 600, 15.83 / 14.85 / 15.81 after 900 (the other folder, none / 32: 14.29 / 15.84 after 300, 14.33 / 14.41
 after 600), at 0.74-0.83x the seconds per step (13-23 samples per ray against 18-28: less fog in the box), the orbit's
 sky clearer of cloud floaters with 32 rows than 16, and with 16 than none. End to end (``nerfpipe run SFM --time-budget
-270``, the two codes at once, one thread each): see the README's session-62 row."""
+270``, the two codes at once, one thread each): see the session-62 row of docs/measured.md."""
 
 DENSITY_LEVELS_REAL = 2
 """``FastConfig.density_levels`` of real captures: their density from the two coarsest levels (32 and 64 vertices along the

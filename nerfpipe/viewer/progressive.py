@@ -22,7 +22,7 @@ browser drawing on the same machine, other work), renders at most ``refine_share
 after each strip; a new camera is served at once). Measured on colmap_mouse with headless Chromium on the
 same two cores (load 4-5; a viewer in-process, timed by the page's clock), a refinement rendering without
 rest kept the page from sending a moved camera for 0.06-1.3 s, and with half the time 1 ms; move to low
-frame shown 0.50-1.87 s against 0.22-0.44 s (README, viewer rows).
+frame shown 0.50-1.87 s against 0.22-0.44 s (docs/measured.md, viewer rows).
 
 A strip is the same camera with its principal point moved up by the strip's first row and its
 height cut to the strip (:func:`strip_camera`), rendered by the one renderer
