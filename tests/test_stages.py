@@ -149,6 +149,31 @@ def test_each_stage_sees_whether_only_light_stages_follow(tmp_path):
     assert stages()["export"].light and stages()["report"].light and not stages()["mesh"].light
 
 
+def test_each_stage_plans_on_the_time_left_less_what_the_later_stages_need(tmp_path):
+    """Under a budget a stage plans on the time left less the ``min_seconds`` of the stages after it (the orbit's few
+    seconds, which the mesh stage used to take), keeping at least half; without a budget there is nothing to plan on."""
+    seen = {}
+
+    def probe(name: str, min_seconds: float = 0.0) -> StageSpec:
+        def run(config: ToyConfig, ctx: StageContext) -> dict:
+            seen[name] = (ctx.time_left(), ctx.time_for_stage())
+            return {}
+
+        return StageSpec(name, f"probe {name}", ToyConfig, run, min_seconds=min_seconds)
+
+    registry = {"a": probe("a"), "b": probe("b", 3.0), "c": probe("c", 2.0)}
+    Pipeline(["a", "b", "c"], registry=registry).run(None, tmp_path / "1", time_budget=100.0)
+    for name, floors in (("a", 5.0), ("b", 2.0), ("c", 0.0)):
+        left, planned = seen[name]
+        assert 99.0 < left <= 100.0 and planned == pytest.approx(left - floors, abs=1e-3), (name, seen[name])
+    Pipeline(["a", "b", "c"], registry=registry).run(None, tmp_path / "2", time_budget=6.0)
+    left, planned = seen["a"]
+    assert planned == pytest.approx(0.5 * left, abs=1e-3)  # 5 s of floors, but half of 6 s stays the stage's
+    Pipeline(["a", "b", "c"], registry=registry).run(None, tmp_path / "3")
+    assert seen["a"] == (None, None)
+    assert stages()["render"].min_seconds > 0 and stages()["mesh"].min_seconds == 0
+
+
 def test_failed_stage_leaves_no_marker_and_no_artifact(tmp_path):
     calls = []
     with pytest.raises(RuntimeError, match="b failed half-way"):

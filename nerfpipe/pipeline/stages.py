@@ -97,6 +97,9 @@ class StageSpec:
     light: bool = False
     """The stage takes about no time (writing files from what is in memory: ``export``, ``report``): a stage followed
     only by light ones may spend more of the time left (:meth:`StageContext.rest_is_light`)."""
+    min_seconds: float = 0.0
+    """Under a time budget, the seconds the stages before it leave it at least (:meth:`StageContext.time_for_stage`):
+    ``render`` keeps a few for its orbit, which the mesh stage would otherwise take."""
     collective: bool = False
     """Under torchrun, every process runs the stage together (``train``: data-parallel); the others run
     on rank 0 alone. A collective stage writes only from rank 0 (:class:`nerfpipe.training.distributed.World`)."""
@@ -160,6 +163,14 @@ class StageContext:
         if self.time_budget is None:
             return None
         return max(0.0, self.time_budget - (time.monotonic() - self.started))
+
+    def time_for_stage(self) -> "float | None":
+        """Seconds the running stage may plan on: :meth:`time_left` less what the stages after it need at least
+        (their :attr:`StageSpec.min_seconds`), of which it keeps at least half; None without a budget."""
+        left = self.time_left()
+        if left is None:
+            return None
+        return left - min(sum(spec.min_seconds for spec in self.following), 0.5 * left)
 
 
 # ---------------------------------------------------------------- discovery and configs

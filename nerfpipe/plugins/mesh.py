@@ -9,10 +9,10 @@ When the input offers a reference (a synthetic scene's ``gt_mesh.ply``, COLMAP s
 for ``mesh.ply``: F-score at 1% of the reference's diagonal, Chamfer-L1, accuracy, completeness
 (against the mesh) and the fraction of sparse points within the threshold.
 
-Under a time budget (``ctx.time_left()``) the marching-cubes resolution is lowered (256 -> 192 -> 128)
-when the estimated cost does not fit half the time left; TSDF fusion (the default) renders the views that fit and
-fuses coarser voxels where its faces would not fit the stage's reserve (:meth:`RenderedViews.max_faces`). mesh.json
-records ``resolution`` and ``resolution_requested``.
+Under a time budget (``ctx.time_for_stage()``: the time left less the orbit render's few seconds) the marching-cubes
+resolution is lowered (256 -> 192 -> 128) when the estimated cost does not fit half the time left; TSDF fusion (the
+default) renders the views that fit and fuses coarser voxels where its faces would not fit the stage's reserve
+(:meth:`RenderedViews.max_faces`). mesh.json records ``resolution`` and ``resolution_requested``.
 """
 
 import dataclasses
@@ -98,7 +98,7 @@ def run(config: MeshStageConfig, ctx: StageContext) -> "dict[str, object]":
     from nerfpipe.mesh.trained import mesh_model
 
     scene, model = ctx.get("scene"), ctx.get("model")
-    seconds_left = ctx.time_left()
+    seconds_left = ctx.time_for_stage()  # the orbit render after it keeps its few seconds
     cfg = budgeted(config.mesh, seconds_left)
     result = mesh_model(cfg, model, scene, config.views, ctx.device, seconds_left)
     result.figures.update(resolution_requested=config.mesh.resolution, seconds_left_at_start=seconds_left)
