@@ -6,7 +6,8 @@ capture onto the wrong side keeps the rest exact, so a least-squares alignment w
 
 Run: ``python -m benchmarks.sfm_poses PHOTOS REFERENCE_MODEL --runs 5``; one JSON line per run.
 Session 28: 23 of colmap_mouse's photos (every 56/23-th by name) against COLMAP's model of all 56, one line per run.
-Since session 61 each run is unfolded as the stage does (``unfold`` in its line: ``nerfpipe.plugins.unfold``).
+Since session 61 each run is unfolded as the stage does (``unfold`` in its line: ``nerfpipe.plugins.unfold``); since
+session 72 the rarer orientation's photos are turned to share their camera as the stage does (``--no-turn``: not).
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
@@ -35,6 +36,8 @@ class SfmPosesConfig:
     """``IncrementalPipelineOptions.random_seed`` of the mapping (None: COLMAP's default, random)."""
     tolerance: float = 5.0
     """Degrees within which a rotation agrees."""
+    turn: bool = True
+    """Photos of the rarer orientation turned to share their camera (``SfmConfig.turn``; session 72)."""
 
 
 def main(cfg: SfmPosesConfig) -> "list[dict]":
@@ -44,7 +47,7 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
     from nerfpipe.plugins.sfm import model_rotations, rotation_agreement
 
     reference = model_rotations(pycolmap.Reconstruction(str(cfg.reference)))
-    config = sfm.SfmConfig(candidate_sizes=())  # the first reconstruction, as it comes
+    config = sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn)  # the first reconstruction, as it comes
     options = sfm._options
     if cfg.seed is not None:
         def seeded(pycolmap, config, time_left):
@@ -60,12 +63,14 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
             with tempfile.TemporaryDirectory() as tmp:
                 work = Path(tmp)
                 start = time.monotonic()
-                rec, _, _, unfolded = sfm._candidate(photos, work, config, None)
+                rec, _, images, unfolded = sfm._candidate(photos, work, config, None)
                 sfm.drop_failed_registrations(rec, config.max_centre_spread)
+                rec, _ = sfm.unturn(rec, images)  # the photos upright, as the reference has them
                 seconds = time.monotonic() - start
                 agreement = rotation_agreement(model_rotations(rec), reference, cfg.tolerance)
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
+                                 focal_px=sorted({round(c.mean_focal_length()) for c in rec.cameras.values()}),
                                  **agreement, unfold=unfolded))
                 print(json.dumps(rows[-1]), flush=True)
     finally:

@@ -487,3 +487,99 @@ def test_colmaps_own_warnings_are_quiet_unless_verbose():
     assert pycolmap.logging.minloglevel == before
     with _colmap_log(pycolmap, verbose=True):
         assert pycolmap.logging.minloglevel == before
+
+
+def test_the_rarer_orientation_of_one_camera_is_turned():
+    from nerfpipe.plugins.sfm import photos_to_turn
+
+    info = [(40, 30, ""), (30, 40, ""), (40, 30, ""), (40, 30, "Pixel 7"), (30, 40, "X"), (30, 30, "")]
+    assert photos_to_turn(info) == {1}  # "Pixel 7" and "X" are other cameras; a square photo has no other orientation
+    assert photos_to_turn([(40, 30, "A"), (30, 40, "A")]) == {1}  # a tie: the portrait photo
+    assert photos_to_turn([(40, 30, "A"), (30, 40, "A"), (30, 40, "A")]) == {0}
+
+
+def test_a_turned_photos_reconstruction_is_turned_back_exactly(tmp_path):
+    """A reconstruction mapped on a photo turned a quarter counter-clockwise (as :func:`turn_photos` turns it) turned
+    back: its keypoints and points project where the upright photo shows them, its centre stays, its pixels agree."""
+    import pycolmap
+    from PIL import Image
+
+    from nerfpipe.plugins.sfm import UPRIGHT_DIR, unturn
+
+    # the pixels: upright photo P (W wide), turned L = P turned a quarter; L's pixel (row r, col j) is P's (j, W-1-r)
+    rng = np.random.default_rng(0)
+    p = rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)
+    turned_pixels = np.asarray(Image.fromarray(p).transpose(Image.Transpose.ROTATE_90))
+    rows, cols = np.meshgrid(np.arange(40), np.arange(30), indexing="ij")
+    assert np.array_equal(turned_pixels[rows, cols], p[cols, 40 - 1 - rows])
+    # the geometry: two photos of one SIMPLE_RADIAL camera (the turned one's size), the first of them turned
+    cam = pycolmap.Camera(model="SIMPLE_RADIAL", width=30, height=40, params=[35.0, 14.0, 21.0, 0.05], camera_id=1)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(cam)
+    xyz = rng.uniform(-0.5, 0.5, (12, 3))
+    poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.1, -0.2, 0.05])), np.array([0.1, 0.0, 3.0])),
+             pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([-0.1, 0.3, 0.0])), np.array([0.0, 0.2, 3.2]))]
+    for image_id, (name, pose) in enumerate(zip(["t.jpg", "u.jpg"], poses), start=1):
+        keypoints = np.array([cam.img_from_cam(pose * x) for x in xyz])
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=keypoints, camera_id=1, image_id=image_id), pose)
+    for k, x in enumerate(xyz):
+        track = pycolmap.Track()
+        track.add_element(1, k)
+        track.add_element(2, k)
+        rec.add_point3D(x, track)
+    images = tmp_path / "images"
+    (tmp_path / UPRIGHT_DIR).mkdir(parents=True)
+    images.mkdir()
+    for name in ("t.jpg", "u.jpg"):
+        (images / name).write_bytes(b"turned" if name == "t.jpg" else b"as taken")
+    (tmp_path / UPRIGHT_DIR / "t.jpg").write_bytes(b"upright")
+    out, folder = unturn(rec, images)
+    assert (folder / "t.jpg").read_bytes() == b"upright" and (folder / "u.jpg").read_bytes() == b"as taken"
+    t, u = (out.find_image_with_name(n) for n in ("t.jpg", "u.jpg"))
+    assert (t.camera.width, t.camera.height) == (40, 30) and t.camera_id != u.camera_id == 1
+    assert np.allclose(t.camera.params, [35.0, 40 - 21.0, 14.0, 0.05])
+    before = rec.find_image_with_name("t.jpg")
+    kp = np.array([q.xy for q in before.points2D])
+    assert np.allclose([q.xy for q in t.points2D], np.c_[40 - kp[:, 1], kp[:, 0]])  # (x, y) -> (W - y, x), W the upright width
+    assert np.allclose(t.projection_center(), before.projection_center())
+    for point in out.points3D.values():  # every observation where the photo shows it
+        for el in point.track.elements:
+            image = out.image(el.image_id)
+            assert np.allclose(image.camera.img_from_cam(image.cam_from_world() * point.xyz), image.points2D[el.point2D_idx].xy, atol=1e-9)
+    assert out.num_points3D() == 12 and out.compute_mean_reprojection_error() < 1e-9
+    assert unturn(rec, tmp_path / "nothing" / "images") == (rec, tmp_path / "nothing" / "images")  # nothing turned
+
+
+def test_a_portrait_photo_among_landscape_ones_shares_their_camera_and_keeps_its_pose(photos, tmp_path):
+    """One of the Sceaux photos stored as a portrait (turned a quarter clockwise, as the same camera held upright
+    would take it): mapped turned back with the others' camera, then given back upright, its camera is the others'
+    turned, and its pose relative to another photo the landscape photo's turned a quarter about its optical axis."""
+    from PIL import Image
+
+    portrait = tmp_path / "portrait"
+    (portrait / "images").mkdir(parents=True)
+    for name in PHOTOS:
+        with Image.open(photos / "images" / name) as im:
+            (im.transpose(Image.Transpose.ROTATE_270) if name == PHOTOS[1] else im).save(portrait / "images" / name, quality=95)
+    runs = {}
+    for label, folder in (("landscape", photos), ("portrait", portrait)):
+        result = Pipeline(["sfm"], {"sfm": FAST}).run(folder, tmp_path / label)
+        rec = result["sfm_reconstruction"]
+        runs[label] = ({rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}, json.loads((tmp_path / label / "sfm" / "sfm.json").read_text()))
+    (images, summary), (upright, _) = runs["portrait"], runs["landscape"]
+    assert summary["turned"] == [PHOTOS[1]] and len(summary["cameras"]) == 2
+    a, b = (c["params"] for c in summary["cameras"])
+    assert a[0] == b[0] and sorted([a[1], a[2]]) == sorted([b[1], b[2]])  # one focal length, the same camera turned
+    if {PHOTOS[0], PHOTOS[1]} - images.keys() or {PHOTOS[0], PHOTOS[1]} - upright.keys():
+        pytest.skip("a photo was not registered")
+    cam = images[PHOTOS[1]].camera
+    assert cam.height > cam.width and images[PHOTOS[0]].camera.width > images[PHOTOS[0]].camera.height
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the upright camera from the landscape one
+
+    def relative(by_name) -> np.ndarray:
+        rot = {n: np.asarray(by_name[n].cam_from_world().rotation.matrix()) for n in (PHOTOS[0], PHOTOS[1])}
+        return rot[PHOTOS[1]] @ rot[PHOTOS[0]].T
+
+    turned_back = quarter.T @ relative(images)
+    angle = np.degrees(np.arccos(np.clip((np.trace(turned_back @ relative(upright).T) - 1) / 2, -1, 1)))
+    assert angle < 1.0
