@@ -25,6 +25,28 @@ import numpy as np
 
 from nerfpipe.util.errors import NerfpipeError
 
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+"""The photographs a folder of photos (the ``sfm`` stage's input) is made of."""
+
+OTHER_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".tif", ".tiff", ".webp")
+"""Photographs nerfpipe does not read (a phone's HEIC, a camera's raw files, TIFF, WebP): a folder of them is named as
+such (:func:`unread_photos`), not as an unknown dataset."""
+
+
+def unread_photos(path: "str | Path") -> "list[Path]":
+    """The photographs of :data:`OTHER_PHOTO_SUFFIXES` in ``path`` (or ``path/images``) where it holds none of
+    :data:`PHOTO_SUFFIXES`; empty otherwise."""
+    for folder in (Path(path) / "images", Path(path)):
+        if folder.is_dir():
+            files = [p for p in folder.iterdir() if p.is_file()]
+            if any(p.suffix.lower() in PHOTO_SUFFIXES for p in files):
+                return []
+            other = sorted(p for p in files if p.suffix.lower() in OTHER_PHOTO_SUFFIXES)
+            if other:
+                return other
+    return []
+
+
 FLOAT_SLACK = 1e-3
 """Float images may stray this far outside [0, 1] (rounding in the writer) and are clipped."""
 _AS_RGB = {"CMYK", "YCbCr", "LAB", "HSV", "1"}

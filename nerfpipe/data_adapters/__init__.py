@@ -6,6 +6,7 @@ register there too). :func:`load` picks the adapter whose ``detect`` scores a pa
 
 from pathlib import Path
 
+from nerfpipe.data.image_file import unread_photos
 from nerfpipe.data.scene import SceneData
 from nerfpipe.util.errors import NerfpipeError
 from nerfpipe.util.registry import ADAPTER_GROUP, AdapterSpec, discover
@@ -25,6 +26,11 @@ def detect(path: "str | Path") -> AdapterSpec:
         raise NerfpipeError("no such file or folder", path)
     scored = sorted(((spec.detect(path), name, spec) for name, spec in adapters().items()), key=lambda s: -s[0])
     if not scored or scored[0][0] <= 0:
+        unread = unread_photos(path)
+        if unread:
+            kinds = ", ".join(sorted({p.suffix for p in unread}))
+            raise NerfpipeError(f"holds {len(unread)} photos in a format nerfpipe does not read ({kinds}): convert them to JPEG "
+                                f"or PNG (e.g. ImageMagick's `mogrify -format jpg *{unread[0].suffix}`)", path)
         known = ", ".join(sorted(adapters()))
         raise NerfpipeError(f"not a dataset nerfpipe can read (known formats: {known})", path)
     return scored[0][2]

@@ -25,7 +25,7 @@ from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 from typing import Literal
 
-from nerfpipe.data.image_file import image_header, open_image
+from nerfpipe.data.image_file import PHOTO_SUFFIXES, image_header, open_image
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
 from nerfpipe.plugins import unfold
@@ -36,7 +36,6 @@ SFM_DIR = "sfm"
 WORK_DIR = "sfm.work"
 POINTS_DIR = "points"
 """Inside ``SFM_DIR``: the triangulated points of a posed input (a COLMAP model in the input's frame)."""
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
 @dataclass
