@@ -49,7 +49,8 @@ class SfmConfig:
     model, as the photos of one phone or camera are; ``per_image``: one per photo. Per photo, a few photos fit
     wild intrinsics: on 23 photos of colmap_mouse (two orientations, no EXIF) it registered 18 with focal
     lengths of 117 to 1.5e6 px and one camera 1,000x farther than the others; one camera per size registered 18
-    with two plausible focal lengths and 926 points instead of 659."""
+    with two plausible focal lengths and 926 points instead of 659. One camera's photos of both orientations share it
+    (``turn``)."""
     camera_model: str = "SIMPLE_RADIAL"
     """COLMAP camera model estimated before undistortion."""
     turn: bool = True
