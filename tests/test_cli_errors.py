@@ -50,10 +50,10 @@ def _unknown_format(root):
     return root, root
 
 
-def _phone_photos(root):
+def _raw_photos(root):
     (root / "images").mkdir()
     for i in range(3):
-        (root / "images" / f"IMG_{i}.HEIC").write_bytes(b"ftypheic")
+        (root / "images" / f"IMG_{i}.CR2").write_bytes(b"II*\x00raw")
     return root, root
 
 
@@ -64,7 +64,7 @@ CASES = {
     "size-mismatch": _size_mismatch,
     "nonexistent": _nonexistent,
     "unknown-format": _unknown_format,
-    "phone-photos": _phone_photos,
+    "raw-photos": _raw_photos,
 }
 
 
@@ -80,8 +80,8 @@ def test_one_line_error(tmp_path, capsys, case, command):
     assert len(lines) == 1, err
     assert lines[0].startswith("nerfpipe: error: ") and str(culprit) in lines[0]
     assert "Traceback" not in err
-    if case == "phone-photos":  # said what they are and what to do
-        assert "3 photos in a format nerfpipe does not read (.HEIC): convert them to JPEG" in lines[0]
+    if case == "raw-photos":  # said what they are and what to do
+        assert "3 photos in a format nerfpipe does not read (.CR2): convert them to JPEG" in lines[0]
 
 
 def test_debug_raises(tmp_path):

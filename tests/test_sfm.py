@@ -583,3 +583,38 @@ def test_a_portrait_photo_among_landscape_ones_shares_their_camera_and_keeps_its
     turned_back = quarter.T @ relative(images)
     angle = np.degrees(np.arccos(np.clip((np.trace(turned_back @ relative(upright).T) - 1) / 2, -1, 1)))
     assert angle < 1.0
+
+
+def test_heic_photos_are_reconstructed_under_their_own_names(photos, tmp_path):
+    """An iPhone's HEIC photos (the Sceaux photos encoded so, one of them held as a portrait: its rotation in the HEIF
+    file, EXIF orientation 6 when written): read upright, mapped as JPEG copies named ``NAME.HEIC.jpg``, the photos
+    the reconstruction leaves out named as the user's files; a broken one is one error naming it."""
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from PIL import Image
+
+    from nerfpipe.util.errors import NerfpipeError
+
+    heic = tmp_path / "heic"
+    (heic / "images").mkdir(parents=True)
+    for name in PHOTOS:
+        with Image.open(photos / "images" / name) as im:
+            small = im.convert("RGB").resize((MAX_SIZE, round(MAX_SIZE * im.height / im.width)))
+        file = pillow_heif.from_pillow(small)
+        if name == PHOTOS[2]:  # the same camera (its EXIF kept), shown turned a quarter clockwise: a portrait
+            exif = small.getexif()
+            exif.get_ifd(0x8769)  # the focal length, part of the camera's tag, written back with it
+            exif[0x0112] = 6
+            file.info["exif"] = exif.tobytes()
+        file.save(heic / "images" / (Path(name).stem + ".HEIC"), quality=90)
+    result = Pipeline(["sfm", "load", "check"], {"sfm": FAST}).run(heic, tmp_path / "run")
+    summary = json.loads((tmp_path / "run" / "sfm" / "sfm.json").read_text())
+    names = sorted(Path(n).stem + ".HEIC" for n in PHOTOS)
+    registered = {result["sfm_reconstruction"].image(i).name for i in result["sfm_reconstruction"].reg_image_ids()}
+    assert registered <= {n + ".jpg" for n in names} and len(registered) >= 3
+    assert sorted(summary["unregistered"]) == sorted(n for n in names if n + ".jpg" not in registered)
+    assert summary["turned"] == [Path(PHOTOS[2]).stem + ".HEIC.jpg"]  # upright, so a portrait among landscapes
+    assert result["check"]["failures"] == []
+    (heic / "images" / names[0]).write_bytes(b"ftypheic but nothing more")
+    with pytest.raises(NerfpipeError, match="cannot decode HEIF image") as info:
+        Pipeline(["sfm"], {"sfm": FAST}).run(heic, tmp_path / "broken")
+    assert info.value.path is not None and info.value.path.name == names[0]

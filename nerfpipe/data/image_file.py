@@ -25,12 +25,16 @@ import numpy as np
 
 from nerfpipe.util.errors import NerfpipeError
 
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+HEIF_SUFFIXES = (".heic", ".heif")
+"""Photographs in HEIF (HEVC-coded: an iPhone's default), read with pillow-heif (the ``colmap`` extra, with the SfM that
+photographs go through), its rotation applied as the file says."""
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", *HEIF_SUFFIXES)
 """The photographs a folder of photos (the ``sfm`` stage's input) is made of."""
 
-OTHER_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".tif", ".tiff", ".webp")
-"""Photographs nerfpipe does not read (a phone's HEIC, a camera's raw files, TIFF, WebP): a folder of them is named as
-such (:func:`unread_photos`), not as an unknown dataset."""
+OTHER_PHOTO_SUFFIXES = (".avif", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".tif", ".tiff", ".webp")
+"""Photographs nerfpipe does not read (a camera's raw files, TIFF, WebP): a folder of them is named as such
+(:func:`unread_photos`), not as an unknown dataset."""
 
 
 def unread_photos(path: "str | Path") -> "list[Path]":
@@ -74,6 +78,9 @@ def open_image(path: "str | Path", decode: bool = True, draft: "tuple[int, int] 
         raise NerfpipeError("is a folder, not an image file" if path.is_dir() else "image file is missing", path)
     if path.stat().st_size == 0:
         raise NerfpipeError("image file is empty", path)
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        yield _open_heif(path, decode)
+        return
     with contextlib.ExitStack() as stack:
         try:
             with warnings.catch_warnings():
@@ -88,6 +95,31 @@ def open_image(path: "str | Path", decode: bool = True, draft: "tuple[int, int] 
         except Exception as exc:  # Pillow raises OSError, SyntaxError, ValueError... for broken files
             raise NerfpipeError(f"cannot decode image, truncated or corrupt ({type(exc).__name__}: {_first_line(exc)})", path) from exc
         yield im
+
+
+class _HeifHeader:
+    """What :func:`image_header` reads of a HEIF file without decoding it: its size (rotation applied) and mode."""
+
+    def __init__(self, heif) -> None:
+        self.size, self.mode, self.info = tuple(heif.size), heif.mode, {}
+
+    def getbands(self) -> "tuple[str, ...]":
+        return tuple(self.mode)
+
+
+def _open_heif(path: Path, decode: bool):
+    """A HEIF photo (:data:`HEIF_SUFFIXES`) as a Pillow image (its EXIF kept, the rotation applied by libheif and the
+    EXIF orientation reset to upright), or only its header; one error line naming it where it cannot be decoded."""
+    from nerfpipe.util.errors import require
+
+    pillow_heif = require("pillow_heif", "colmap")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            heif = pillow_heif.open_heif(path, convert_hdr_to_8bit=True)
+            return heif.to_pillow() if decode else _HeifHeader(heif)
+    except Exception as exc:  # libheif's errors for a file that is not HEIF or is broken
+        raise NerfpipeError(f"cannot decode HEIF image, truncated or corrupt ({type(exc).__name__}: {_first_line(exc)})", path) from exc
 
 
 def image_header(path: "str | Path") -> "tuple[int, int, int]":

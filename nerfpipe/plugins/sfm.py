@@ -25,7 +25,7 @@ from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 from typing import Literal
 
-from nerfpipe.data.image_file import PHOTO_SUFFIXES, image_header, open_image
+from nerfpipe.data.image_file import HEIF_SUFFIXES, PHOTO_SUFFIXES, image_header, open_image
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
 from nerfpipe.plugins import unfold
@@ -183,6 +183,12 @@ def camera_tag(exif) -> str:
     return f"{model} {float(focal):g}mm".strip() if focal else model
 
 
+def sfm_name(photo: Path) -> str:
+    """A photo's file name in the reconstruction: its own, or a HEIF photo's with ``.jpg`` added (written as a JPEG by
+    :func:`prepare_images`: COLMAP reads and writes JPEG and PNG)."""
+    return photo.name + ".jpg" if photo.suffix.lower() in HEIF_SUFFIXES else photo.name
+
+
 def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tuple[int, int, str]]":
     """Downscale (or link) the photos into ``out``, turned upright as their EXIF orientation says (a phone's
     portrait photo is stored sideways with a tag that only viewers apply; COLMAP would see it sideways, and
@@ -198,7 +204,7 @@ def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tupl
         with open_image(p, draft=size) as im:  # decoded here, so a broken photo is one line naming it
             exif = im.getexif()
             model, orientation = camera_tag(exif), exif.get(0x0112, 1)
-            if size is None and orientation in (0, 1):
+            if size is None and orientation in (0, 1) and p.name == sfm_name(p):
                 (out / p.name).symlink_to(p.resolve())
                 info.append((w, h, model))
                 continue
@@ -206,7 +212,7 @@ def prepare_images(photos: "list[Path]", out: Path, max_size: int) -> "list[tupl
             if size is not None:
                 small = small.resize(size[::-1] if orientation in (5, 6, 7, 8) else size, Image.LANCZOS)
             exif[0x0112] = 1
-            small.save(out / p.name, quality=95, exif=exif.tobytes())
+            small.save(out / sfm_name(p), quality=95, exif=exif.tobytes())
             info.append((*small.size, model))
     return info
 
@@ -524,7 +530,7 @@ def summary(rec, photos: "list[Path]", seconds: dict) -> dict:
     return {
         "num_photos": len(photos),
         "num_registered": len(registered),
-        "unregistered": sorted({p.name for p in photos} - set(registered)),
+        "unregistered": sorted(p.name for p in photos if sfm_name(p) not in set(registered)),
         "num_points3D": rec.num_points3D(),
         "mean_reprojection_error_px": rec.compute_mean_reprojection_error(),
         "cameras": [{"id": int(cid), "model": c.model.name, "width": c.width, "height": c.height,
@@ -691,8 +697,8 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
     was matched (:attr:`SfmConfig.unfold`): (reconstruction, seconds, images folder, what the unfolding did)."""
     info = prepare_images(photos, work / "images", config.max_image_size)
     if config.turn and config.camera_mode == "auto" and config.camera_model in TURNABLE_MODELS:
-        info = turn_photos(work / "images", [p.name for p in photos], info, photos_to_turn(info))
-    group_photos(work / "images", [p.name for p in photos], info, work / "grouped")
+        info = turn_photos(work / "images", [sfm_name(p) for p in photos], info, photos_to_turn(info))
+    group_photos(work / "images", [sfm_name(p) for p in photos], info, work / "grouped")
     started = time.monotonic()
     rec, seconds = reconstruct(work / "grouped", work, config, info, time_left)
     unfolded: dict = {}
