@@ -606,9 +606,18 @@ def test_heic_photos_are_reconstructed_under_their_own_names(photos, tmp_path):
             exif[0x0112] = 6
             file.info["exif"] = exif.tobytes()
         file.save(heic / "images" / (Path(name).stem + ".HEIC"), quality=90)
-    result = Pipeline(["sfm", "load", "check"], {"sfm": FAST}).run(heic, tmp_path / "run")
+    result = Pipeline(["sfm", "load", "check"], {"sfm": {**FAST, "candidate_sizes": (320,)}}).run(heic, tmp_path / "run")
     summary = json.loads((tmp_path / "run" / "sfm" / "sfm.json").read_text())
     names = sorted(Path(n).stem + ".HEIC" for n in PHOTOS)
+    from nerfpipe.plugins.sfm import prepared_sources
+
+    first = tmp_path / "run" / "sfm.work" / "images"  # the smaller size downscales the first size's JPEG copies, upright
+    sources = prepared_sources(sorted((heic / "images").iterdir()), first)
+    assert [p.name for p in sources] == [n + ".jpg" for n in names]
+    assert sources[2].parent.name == "upright" and all(p.parent == first for k, p in enumerate(sources) if k != 2)
+    with Image.open(tmp_path / "run" / "sfm.work" / "size320" / "images" / sources[2].name) as im:
+        assert im.size == (320, round(301 * 320 / 400))  # the portrait, turned again for its mapping there
+    assert [c["max_image_size"] for c in summary["candidates"]][:1] == [MAX_SIZE]
     registered = {result["sfm_reconstruction"].image(i).name for i in result["sfm_reconstruction"].reg_image_ids()}
     assert registered <= {n + ".jpg" for n in names} and len(registered) >= 3
     assert sorted(summary["unregistered"]) == sorted(n for n in names if n + ".jpg" not in registered)

@@ -56,9 +56,11 @@ class SfmConfig:
     turn: bool = True
     """With ``camera_mode`` ``auto``: where one camera's photos come in both orientations of one size, map the
     rarer orientation's photos turned a quarter so that they share the camera's intrinsics, and turn the result
-    back (:func:`photos_to_turn`, :func:`unturn`). 23 photos of colmap_mouse (9 portrait, no EXIF),
-    ``nerfpipe run --time-budget 180``: 10 of 23 photos registered (all landscape; the portrait camera's focal
-    1,466 px and distortion -3.2) against 19 with one camera (focal 736 px)."""
+    back (:func:`photos_to_turn`, :func:`unturn`). 23 photos of colmap_mouse (9 portrait, no EXIF), 24 mappings at
+    1,024 px: the one focal length 735-748 px every time (COLMAP's model of all 59 photos: 741), where the portrait
+    camera alone fitted 746-785 px and once 166 (one run of the stage: 1,466 px and distortion -3.2, 10 of 23 photos
+    registered); median rotation error 0.37-0.74 degrees against 0.39-0.96. Folds are as frequent either way (17 of
+    24 right against 17 of 23: README, "A phone's portrait and landscape photos share one camera")."""
     max_num_features: int = 8192
     """SIFT features per image."""
     num_threads: int = 2
@@ -906,6 +908,17 @@ def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, v
     return record
 
 
+def prepared_sources(photos: "list[Path]", images: Path) -> "list[Path]":
+    """What the reconstructions at the smaller ``candidate_sizes`` downscale: ``photos``, or where some are HEIF, the
+    upright copies that :func:`prepare_images` made of them in ``images`` (the first size's, JPEG, of the same names:
+    a 12 MP HEIC photo takes 0.35 s to decode on 2 cores, a JPEG's reduced decode 0.02 s, so 23 of them decoded
+    again cost 8 s of a budget)."""
+    if not any(p.suffix.lower() in HEIF_SUFFIXES for p in photos):
+        return photos
+    upright = images.parent / UPRIGHT_DIR
+    return [upright / sfm_name(p) if (upright / sfm_name(p)).exists() else images / sfm_name(p) for p in photos]
+
+
 def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
                     first_unfolded: "dict | None" = None) -> "tuple[object, Path, dict, dict]":
     """:func:`choose_reconstruction` among the reconstructions at the image sizes; also the rotations
@@ -921,12 +934,13 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
     started = time.monotonic()
     candidates = [(config.max_image_size, rec, images)]
     folded = {config.max_image_size: unfold.still_folded(first_unfolded or {})}
+    sources = prepared_sources(photos, images)
     for size in config.candidate_sizes:
         if time_left is not None and time.monotonic() - started > CHECK_MAX_SHARE * time_left:
             break
         cfg = dataclasses_replace(config, max_image_size=size)
         try:
-            other, _, other_images, unfolded = _candidate(photos, size_work(work, size), cfg, time_left, log)
+            other, _, other_images, unfolded = _candidate(sources, size_work(work, size), cfg, time_left, log)
         except NerfpipeError:
             continue
         drop_failed_registrations(other, config.max_centre_spread)
