@@ -56,11 +56,11 @@ class SfmConfig:
     turn: bool = True
     """With ``camera_mode`` ``auto``: where one camera's photos come in both orientations of one size, map the
     rarer orientation's photos turned a quarter so that they share the camera's intrinsics, and turn the result
-    back (:func:`photos_to_turn`, :func:`unturn`). 23 photos of colmap_mouse (9 portrait, no EXIF), 24 mappings at
+    back (:func:`photos_to_turn`, :func:`unturn`). 23 photos of colmap_mouse (9 portrait, no EXIF), 23 mappings at
     1,024 px: the one focal length 735-748 px every time (COLMAP's model of all 59 photos: 741), where the portrait
     camera alone fitted 746-785 px and once 166 (one run of the stage: 1,466 px and distortion -3.2, 10 of 23 photos
-    registered); median rotation error 0.37-0.74 degrees against 0.39-0.96. Folds are as frequent either way (17 of
-    24 right against 17 of 23: README, "A phone's portrait and landscape photos share one camera")."""
+    registered); median rotation error 0.37-0.74 degrees against 0.39-1.0 where right. Folds are as frequent either
+    way (16 of 23 right against 17 of 23: README, "A phone's portrait and landscape photos share one camera")."""
     max_num_features: int = 8192
     """SIFT features per image."""
     num_threads: int = 2
