@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfpipe.util.errors import NerfpipeError
+from nerfpipe.util.errors import NerfpipeError, require
 
 HEIF_SUFFIXES = (".heic", ".heif")
 """Photographs in HEIF (HEVC-coded: an iPhone's default), read with pillow-heif (the ``colmap`` extra, with the SfM that
@@ -110,8 +110,6 @@ class _HeifHeader:
 def _open_heif(path: Path, decode: bool):
     """A HEIF photo (:data:`HEIF_SUFFIXES`) as a Pillow image (its EXIF kept, the rotation applied by libheif and the
     EXIF orientation reset to upright), or only its header; one error line naming it where it cannot be decoded."""
-    from nerfpipe.util.errors import require
-
     pillow_heif = require("pillow_heif", "colmap")
     try:
         with warnings.catch_warnings():

@@ -263,6 +263,12 @@ def turn_photos(out: Path, names: "list[str]", info: "list[tuple[int, int, str]]
     return info
 
 
+def turned_names(images: Path) -> "set[str]":
+    """The photos of a reconstruction's ``images`` folder that :func:`turn_photos` turned (named in :data:`UPRIGHT_DIR`)."""
+    upright = images.parent / UPRIGHT_DIR
+    return {p.name for p in upright.iterdir()} if upright.is_dir() else set()
+
+
 def unturn(rec, images: Path) -> "tuple[object, Path]":
     """``rec`` (mapped on ``images``, some photos turned by :func:`turn_photos`) for the upright photos: a turned
     photo's image of width W gets a camera of the turned one's intrinsics turned back (focal lengths swapped,
@@ -271,8 +277,7 @@ def unturn(rec, images: Path) -> "tuple[object, Path]":
     import numpy as np
 
     pycolmap = require("pycolmap", "colmap")
-    upright = images.parent / UPRIGHT_DIR
-    turned = {p.name for p in upright.iterdir()} if upright.is_dir() else set()
+    upright, turned = images.parent / UPRIGHT_DIR, turned_names(images)
     if not turned:
         return rec, images
     folder = images.parent / "images_upright"
@@ -529,10 +534,11 @@ def drop_weak_pairs(database: Path, min_inliers: int) -> int:
 def summary(rec, photos: "list[Path]", seconds: dict) -> dict:
     """What ``sfm/sfm.json`` records."""
     registered = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    kept = set(registered)
     return {
         "num_photos": len(photos),
         "num_registered": len(registered),
-        "unregistered": sorted(p.name for p in photos if sfm_name(p) not in set(registered)),
+        "unregistered": sorted(p.name for p in photos if sfm_name(p) not in kept),
         "num_points3D": rec.num_points3D(),
         "mean_reprojection_error_px": rec.compute_mean_reprojection_error(),
         "cameras": [{"id": int(cid), "model": c.model.name, "width": c.width, "height": c.height,
@@ -581,9 +587,9 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
     chosen["unfold"] = {config.max_image_size: unfolded} | chosen.get("unfold", {})
-    turned = images.parent / UPRIGHT_DIR
-    if turned.is_dir():
-        chosen["turned"] = sorted(p.name for p in turned.iterdir())
+    turned = turned_names(images)
+    if turned:
+        chosen["turned"] = sorted(turned)
     rec, images = unturn(rec, images)
     record = summary(rec, photos, seconds) | {"dropped": dropped} | chosen
     _write_result(rec, images, work, ctx.path(SFM_DIR), config.undistort, record, config.verbose)
@@ -697,10 +703,10 @@ def photometric_check(folders: "list[Path]", steps: int, work: Path, rays_per_st
 def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "float | None", log=None):
     """One reconstruction of ``photos`` in ``work`` at ``config.max_image_size``, unfolded where every pair of photos
     was matched (:attr:`SfmConfig.unfold`): (reconstruction, seconds, images folder, what the unfolding did)."""
-    info = prepare_images(photos, work / "images", config.max_image_size)
+    info, names = prepare_images(photos, work / "images", config.max_image_size), [sfm_name(p) for p in photos]
     if config.turn and config.camera_mode == "auto" and config.camera_model in TURNABLE_MODELS:
-        info = turn_photos(work / "images", [sfm_name(p) for p in photos], info, photos_to_turn(info))
-    group_photos(work / "images", [sfm_name(p) for p in photos], info, work / "grouped")
+        info = turn_photos(work / "images", names, info, photos_to_turn(info))
+    group_photos(work / "images", names, info, work / "grouped")
     started = time.monotonic()
     rec, seconds = reconstruct(work / "grouped", work, config, info, time_left)
     unfolded: dict = {}
