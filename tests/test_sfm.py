@@ -342,6 +342,54 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
     assert seen == {"images": tmp_path / "size640" / "grouped", "matches_from": tmp_path / "size640" / "database.db", "min_inliers": [60, 50]}
 
 
+class _Mapped:
+    """A reconstruction as far as :func:`nerfpipe.plugins.sfm.remap_unfolded` reads it."""
+
+    def __init__(self, registered: int):
+        self.registered = registered
+
+    def num_reg_images(self) -> int:
+        return self.registered
+
+
+@pytest.mark.parametrize(
+    ("single", "several", "needed", "kept", "limits"),
+    [
+        (0, 20, 8, 20, [None, 10.0]),  # the first initial pair grows nothing: several models, briefly
+        (11, 20, 8, 11, [None]),  # the one model is enough: no second mapping
+        (3, 5, 8, 5, [None, 10.0]),  # neither is enough: the larger, for unfold to refuse
+        (6, None, 8, 6, [None, 10.0]),  # the second mapping fails: the first
+        (None, None, 8, None, [None, 10.0]),  # neither maps
+    ],
+)
+def test_an_unfoldings_mapping_grows_several_models_where_the_first_is_too_small(tmp_path, monkeypatch, single, several, needed, kept, limits):
+    """Without a fold's weak pairs, the one model grown from COLMAP's first initial pair held no photo on every mapping
+    of a 1,024 px fold of 23 of colmap_mouse's photos (session 73), so the unfolding was given up and the fold kept;
+    the largest of several models, grown within ``UNFOLD_MODELS_SECONDS``, had 20-21 photos, 18 right."""
+    from nerfpipe.plugins import sfm
+    from nerfpipe.util.errors import NerfpipeError
+
+    calls = []
+
+    def mapping(images, work, config, info, time_left=None, matches_from=None, min_inliers=0, single_model=False):
+        calls.append((single_model, time_left, matches_from))
+        registered = single if single_model else several
+        if registered is None:
+            raise NerfpipeError("no reconstruction", work)
+        return _Mapped(registered), {}
+
+    monkeypatch.setattr(sfm, "reconstruct", mapping)
+    monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
+    database = tmp_path / "round0.db"
+    other = sfm.remap_unfolded(tmp_path, sfm.SfmConfig(), [], database, needed, None)
+    assert (None if other is None else other.num_reg_images()) == kept
+    assert [c[1] for c in calls] == limits and [c[0] for c in calls] == [True, False][: len(limits)]
+    assert all(c[2] == database for c in calls)
+    calls.clear()
+    sfm.remap_unfolded(tmp_path, sfm.SfmConfig(), [], database, needed, 4.0)  # a budget shorter than the limit bounds it
+    assert all(limit <= 4.0 for _, limit, _ in calls)
+
+
 def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     """Under a budget too short for the fold test, the reconstruction is kept untested and the user is told so (a
     23-photo folder of colmap_mouse at ``--time-budget 180`` kept a fold silently: session 40)."""
