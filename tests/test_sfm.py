@@ -182,6 +182,33 @@ def test_rotation_agreement_sees_a_folded_part_of_a_capture_through_a_global_rot
     assert rotation_agreement({"x.jpg": np.eye(3)}, ref)["shared"] == 0
 
 
+@pytest.mark.parametrize(
+    ("unfoldings", "placed", "left_out"),
+    [
+        ({1024: {"conflicts": 4, "conflicts_left": 0, "kept": True}, 640: {"conflicts": 1, "conflicts_left": 1}}, "folded", [640]),
+        ({1024: {"conflicts": 4, "conflicts_left": 0, "kept": True}, 640: {"conflicts": 1, "conflicts_left": 1}}, "right", []),
+        ({1024: {"conflicts": 0, "conflicts_left": 0}, 640: {"conflicts": 1, "conflicts_left": 1}}, "folded", []),  # no fold seen: the size check decides
+        ({1024: {"conflicts": 3, "conflicts_left": 3}, 640: {"conflicts": 1, "conflicts_left": 1}}, "folded", []),  # no candidate without a conflict
+    ],
+)
+def test_a_reconstruction_with_a_conflict_is_left_out_where_one_without_places_the_photos_otherwise(monkeypatch, unfoldings, placed, left_out):
+    """In a capture that folded at some image size, a reconstruction keeping one conflict (too few to unfold) that
+    disagrees with a reconstruction without any is a second fold (23 of colmap_mouse's photos as HEIC, session 73: a
+    640 px one with one conflict, 8 of 19 photos placed as the unfolded 1,024 px one, kept by the size check)."""
+    from scipy.spatial.transform import Rotation
+
+    from nerfpipe.plugins import sfm
+
+    rng = np.random.default_rng(1)
+    right = {f"{i:02d}.jpg": Rotation.random(random_state=rng).as_matrix() for i in range(20)}
+    turn = Rotation.from_rotvec(np.radians(70.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    folded = {n: r @ turn if i >= 9 else r for i, (n, r) in enumerate(sorted(right.items()))}
+    rotations = {"first": right, "other": folded if placed == "folded" else right}
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec: rotations[rec])
+    candidates = [(1024, "first", Path("a")), (640, "other", Path("b"))]
+    assert sfm.with_conflicts(candidates, unfoldings) == left_out
+
+
 def _mouse_subset(scene_path, root: Path, names: "list[str]", size: int = 240, fold: "list[str]" = ()) -> Path:
     """A COLMAP folder of ``names`` of colmap_mouse's photos at ``size`` px (the model at full size, as a user's
     half-size copies), the cameras of ``fold`` turned 80 degrees about their centres (a folded reconstruction)."""

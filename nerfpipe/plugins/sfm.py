@@ -952,6 +952,31 @@ def prepared_sources(photos: "list[Path]", images: Path) -> "list[Path]":
     return [upright / sfm_name(p) if (upright / sfm_name(p)).exists() else images / sfm_name(p) for p in photos]
 
 
+def with_conflicts(candidates: "list[tuple[int, object, Path]]", unfoldings: "dict[int, dict]") -> "list[int]":
+    """The image sizes of ``candidates`` (``(size, reconstruction, images folder)``) whose reconstruction keeps a
+    conflict (:func:`nerfpipe.plugins.unfold.view_conflicts`: fewer than ``MIN_CONFLICTS``, so not unfolded) and places
+    the photos otherwise than a candidate without one does, in a capture whose mapping folded at some size
+    (``unfoldings``: what :func:`nerfpipe.plugins.unfold.unfold` recorded, by size). 23 of colmap_mouse's photos stored
+    as HEIC (session 73): at 1,024 px a fold (4 conflicts) undone, 19 photos, 18-19 within 5 degrees of COLMAP's model;
+    at 640 px, in 4 of 8 mappings, 20 photos with one conflict, in 2 of those 4 placed as the unfolded ones (8 of 19
+    alike: a second fold) and in the other 2 placed alike (18 of 19). A 100-step fit rendered the held-out photos 0.2-1.1
+    dB better on the second fold than on the unfolded reconstruction (four runs), so the size check kept it and then
+    only the 7-10 photos the two place alike."""
+    if not any(u.get("conflicts", 0) >= unfold.MIN_CONFLICTS for u in unfoldings.values()):
+        return []
+    clean = [rec for size, rec, _ in candidates if unfoldings.get(size, {}).get("conflicts_left", 1) == 0]
+    conflicted = []
+    for size, rec, _ in candidates:
+        if unfoldings.get(size, {}).get("conflicts_left", 0) == 0:
+            continue
+        for other in clean:
+            agreement = rotation_agreement(model_rotations(rec), model_rotations(other))
+            if agreement["agree"] < SAME_POSES * agreement["shared"]:
+                conflicted.append(size)
+                break
+    return conflicted
+
+
 def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
                     first_unfolded: "dict | None" = None) -> "tuple[object, Path, dict, dict]":
     """:func:`choose_reconstruction` among the reconstructions at the image sizes; also the rotations
@@ -983,6 +1008,13 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
     if not all(folded.values()) and any(folded.values()):
         record["still_folded"] = [c[0] for c in candidates if folded[c[0]]]
         candidates = [c for c in candidates if not folded[c[0]]]
+    unfoldings = {config.max_image_size: first_unfolded or {}} | record.get("unfold", {})
+    conflicted = with_conflicts(candidates, unfoldings)
+    if conflicted:
+        record["with_conflicts"] = conflicted
+        log.warning("sfm: the reconstruction at %s px keeps photos side by side that share no matches and places them otherwise "
+                    "than one without: left out (a second fold)", ", ".join(str(size) for size in conflicted))  # fmt: skip
+        candidates = [c for c in candidates if c[0] not in conflicted]
     most = max(c[1].num_reg_images() for c in candidates)  # one that registers far fewer photos is no alternative
     few = [c for c in candidates if c[1].num_reg_images() < MIN_REGISTERED_SHARE * most]  # no alternatives, but witnesses (rivals)
     candidates = [c for c in candidates if c[1].num_reg_images() >= MIN_REGISTERED_SHARE * most]
