@@ -8,6 +8,10 @@ Run: ``python -m benchmarks.sfm_poses PHOTOS REFERENCE_MODEL --runs 5``; one JSO
 Session 28: 23 of colmap_mouse's photos (every 56/23-th by name) against COLMAP's model of all 56, one line per run.
 Since session 61 each run is unfolded as the stage does (``unfold`` in its line: ``nerfpipe.plugins.unfold``); since
 session 72 the rarer orientation's photos are turned to share their camera as the stage does (``--no-turn``: not).
+``--budget SECONDS`` (session 73): the stage's whole choice instead (every image size, unfolded, then the size check
+or the consensus as the time allows), as ``nerfpipe run PHOTOS --time-budget`` gives it that many seconds. Photos are
+compared with the reference by the name before its first dot (a HEIC photo ``X.HEIC`` is ``X.HEIC.jpg`` in the
+reconstruction and may be ``X.jpg`` in the reference).
 """
 
 if __name__ == "__main__":  # run as a program: the CLI's process settings, before torch loads OpenMP
@@ -16,6 +20,7 @@ if __name__ == "__main__":  # run as a program: the CLI's process settings, befo
     runtime.apply()
 
 import json
+import logging
 import tempfile
 import time
 from dataclasses import dataclass
@@ -38,6 +43,9 @@ class SfmPosesConfig:
     """Degrees within which a rotation agrees."""
     turn: bool = True
     """Photos of the rarer orientation turned to share their camera (``SfmConfig.turn``; session 72)."""
+    budget: "float | None" = None
+    """Seconds the stage has (the whole choice among image sizes, as under ``nerfpipe run --time-budget``); None: the
+    first image size's reconstruction only."""
 
 
 def main(cfg: SfmPosesConfig) -> "list[dict]":
@@ -46,8 +54,11 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
     from nerfpipe.plugins import sfm
     from nerfpipe.plugins.sfm import model_rotations, rotation_agreement
 
-    reference = model_rotations(pycolmap.Reconstruction(str(cfg.reference)))
-    config = sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn)  # the first reconstruction, as it comes
+    def by_stem(rotations: dict) -> dict:
+        return {name.split(".")[0]: r for name, r in rotations.items()}
+
+    reference = by_stem(model_rotations(pycolmap.Reconstruction(str(cfg.reference))))
+    config = sfm.SfmConfig(turn=cfg.turn) if cfg.budget else sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn)
     options = sfm._options
     if cfg.seed is not None:
         def seeded(pycolmap, config, time_left):
@@ -63,15 +74,19 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
             with tempfile.TemporaryDirectory() as tmp:
                 work = Path(tmp)
                 start = time.monotonic()
-                rec, _, images, unfolded = sfm._candidate(photos, work, config, None)
+                left = (lambda: cfg.budget - (time.monotonic() - start)) if cfg.budget else (lambda: None)
+                rec, _, images, unfolded = sfm._candidate(photos, work, config, left(), logging.getLogger("sfm_poses"))
                 sfm.drop_failed_registrations(rec, config.max_centre_spread)
+                chosen = {}
+                if cfg.budget:
+                    rec, images, chosen = sfm.choose_reconstruction(photos, work, config, (rec, images), left(), logging.getLogger("sfm_poses"), unfolded)
                 rec, _ = sfm.unturn(rec, images)  # the photos upright, as the reference has them
                 seconds = time.monotonic() - start
-                agreement = rotation_agreement(model_rotations(rec), reference, cfg.tolerance)
+                agreement = rotation_agreement(by_stem(model_rotations(rec)), reference, cfg.tolerance)
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
                                  focal_px=sorted({round(c.mean_focal_length()) for c in rec.cameras.values()}),
-                                 **agreement, unfold=unfolded))
+                                 **agreement, unfold=unfolded, **{k: chosen[k] for k in ("candidates", "with_conflicts", "still_folded", "strict") if k in chosen}))
                 print(json.dumps(rows[-1]), flush=True)
     finally:
         sfm._options = options
