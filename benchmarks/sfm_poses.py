@@ -67,7 +67,7 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
             return ext, match, mapping, reader
 
         sfm._options = seeded
-    rows = []
+    rows, log = [], logging.getLogger("sfm_poses")
     photos = sfm._photos(cfg.photos)
     try:
         for run in range(cfg.runs):
@@ -75,11 +75,11 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
                 work = Path(tmp)
                 start = time.monotonic()
                 left = (lambda: cfg.budget - (time.monotonic() - start)) if cfg.budget else (lambda: None)
-                rec, _, images, unfolded = sfm._candidate(photos, work, config, left(), logging.getLogger("sfm_poses"))
+                rec, _, images, unfolded = sfm._candidate(photos, work, config, left(), log)
                 sfm.drop_failed_registrations(rec, config.max_centre_spread)
                 chosen = {}
                 if cfg.budget:
-                    rec, images, chosen = sfm.choose_reconstruction(photos, work, config, (rec, images), left(), logging.getLogger("sfm_poses"), unfolded)
+                    rec, images, chosen = sfm.choose_reconstruction(photos, work, config, (rec, images), left(), log, unfolded)
                 rec, _ = sfm.unturn(rec, images)  # the photos upright, as the reference has them
                 seconds = time.monotonic() - start
                 agreement = rotation_agreement(by_stem(model_rotations(rec)), reference, cfg.tolerance)

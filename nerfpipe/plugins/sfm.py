@@ -958,23 +958,15 @@ def with_conflicts(candidates: "list[tuple[int, object, Path]]", unfoldings: "di
     the photos otherwise than a candidate without one does, in a capture whose mapping folded at some size
     (``unfoldings``: what :func:`nerfpipe.plugins.unfold.unfold` recorded, by size). 23 of colmap_mouse's photos stored
     as HEIC (session 73): at 1,024 px a fold (4 conflicts) undone, 19 photos, 18-19 within 5 degrees of COLMAP's model;
-    at 640 px, in 4 of 8 mappings, 20 photos with one conflict, in 2 of those 4 placed as the unfolded ones (8 of 19
-    alike: a second fold) and in the other 2 placed alike (18 of 19). A 100-step fit rendered the held-out photos 0.2-1.1
+    at 640 px, in 4 of 8 mappings, 20 photos with one conflict: in 2 of those 4 placed as the unfolded ones (18 of 19
+    alike), in the other 2 otherwise (8 of 19 alike: a second fold). A 100-step fit rendered the held-out photos 0.2-1.1
     dB better on the second fold than on the unfolded reconstruction (four runs), so the size check kept it and then
     only the 7-10 photos the two place alike."""
     if not any(u.get("conflicts", 0) >= unfold.MIN_CONFLICTS for u in unfoldings.values()):
         return []
     clean = [rec for size, rec, _ in candidates if unfoldings.get(size, {}).get("conflicts_left", 1) == 0]
-    conflicted = []
-    for size, rec, _ in candidates:
-        if unfoldings.get(size, {}).get("conflicts_left", 0) == 0:
-            continue
-        for other in clean:
-            agreement = rotation_agreement(model_rotations(rec), model_rotations(other))
-            if agreement["agree"] < SAME_POSES * agreement["shared"]:
-                conflicted.append(size)
-                break
-    return conflicted
+    return [size for size, rec, _ in candidates
+            if unfoldings.get(size, {}).get("conflicts_left", 0) > 0 and any(not unfold.same_poses(rec, other) for other in clean)]  # fmt: skip
 
 
 def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
