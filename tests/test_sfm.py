@@ -303,13 +303,18 @@ def test_keep_consensus_keeps_the_photos_another_reconstruction_places_alike(sce
     assert keep_consensus(folded, {640: {n: rival[n] for n in names[:CHECK_VIEWS + 2]}}) is None  # too few to keep
     assert model_rotations(folded).keys() == set(names)
     record = keep_consensus(folded, {640: rival, 800: {n: rival[n] for n in names[0::4]}})
-    assert record == {"max_image_size": 640, "kept": 12, "of": 16}
+    assert record == {"max_image_size": 640, "kept": 12, "of": 16, "unshared": False}
     assert sorted(model_rotations(folded)) == sorted(set(names) - set(names[1::4])) and folded.num_points3D() > 0
     part = {n: rival[n] for n in names[:8]}  # a rival that registered half of the photos, two of them folded here
-    for keep_unshared, kept in ((False, sorted(set(names[:8]) - {names[1], names[5]})), (True, sorted(set(names) - {names[1], names[5]}))):
+    alike, all_but = sorted(set(names[:8]) - {names[1], names[5]}), sorted(set(names) - {names[1], names[5]})
+    # an unfolded rival (a fold undone at its size) vouches only for the photos it places alike: the ones it lacks
+    # include the block its unfolding left out
+    for keep_unshared, unfolded, kept in ((False, frozenset(), alike), (True, frozenset(), all_but), (True, frozenset({640}), alike),
+                                          (True, frozenset({800}), all_but)):
         folded = pycolmap.Reconstruction(str(tmp_path / "folded" / "sparse" / "0"))
-        record = keep_consensus(folded, {640: part}, keep_unshared=keep_unshared)
-        assert record == {"max_image_size": 640, "kept": len(kept), "of": 16} and sorted(model_rotations(folded)) == kept
+        record = keep_consensus(folded, {640: part}, keep_unshared=keep_unshared, unfolded=unfolded)
+        assert record == {"max_image_size": 640, "kept": len(kept), "of": 16, "unshared": kept == all_but}, (keep_unshared, unfolded)
+        assert sorted(model_rotations(folded)) == kept
 
 
 MINIATURE_MARGIN = 0.3
@@ -432,12 +437,13 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     assert (rec, images) == chosen and record == {"skipped": "too little time left"}
     assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
     caplog.clear()
-    kept = {"max_image_size": 640, "kept": 9, "of": 20}
-    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False: kept if rivals else None)
+    kept, passed = {"max_image_size": 640, "kept": 9, "of": 20, "unshared": False}, []
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(): passed.append(unfolded) or (kept if rivals else None))
     with caplog.at_level(logging.WARNING, logger="test"):  # a rival reconstruction: the photos placed alike, said
-        rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}})
-    assert (rec, images) == chosen and record == {"skipped": "too little time left", "consensus": kept}
-    assert len(caplog.records) == 1 and "9 of its 20 photos" in caplog.records[0].getMessage()
+        rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}},
+                                               unfolded_sizes=frozenset({640}))  # fmt: skip
+    assert (rec, images) == chosen and record == {"skipped": "too little time left", "consensus": kept} and passed == [frozenset({640})]
+    assert len(caplog.records) == 1 and "9 of its 20 photos" in caplog.records[0].getMessage() and "places alike" in caplog.records[0].getMessage()
     caplog.clear()
 
     def no_reconstruction(*args, **kwargs):

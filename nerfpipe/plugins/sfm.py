@@ -773,7 +773,8 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
-        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals)
+        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals,
+                                                     frozenset(record.get("unfolded", ())))  # fmt: skip
     return rec, images, record
 
 
@@ -807,7 +808,7 @@ on a 2-core CPU; one or two weakly attached photos are left to the reconstructio
 
 
 def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log,
-                 others: "tuple[Path, ...]" = (), rivals: "dict | None" = None) -> "tuple[object, Path, dict]":
+                 others: "tuple[Path, ...]" = (), rivals: "dict | None" = None, unfolded_sizes: "frozenset[int]" = frozenset()) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the chosen reconstruction's own verified
     matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than
     ``strict_min_inliers``, then fewer (:func:`strict_thresholds`), then the same with the matches of the work folders
@@ -821,18 +822,19 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     COLMAP's model of all 56): the strict one registers 11, all right, and renders the held-out photos 20.86 against
     20.13 dB. Where the time budget leaves too little for the test, and reconstructions at other image sizes disagree
     with the chosen one (``rivals``: their rotations by image size), only the photos that one of them places alike are
-    kept (:func:`keep_consensus`). Returns the one kept, its images folder and what was decided."""
+    kept (:func:`keep_consensus`; ``unfolded_sizes``: the sizes whose reconstruction is an unfolding). Returns the one
+    kept, its images folder and what was decided."""
     rec, images = chosen
     if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * STRICT_FIT_SECONDS:
         database = images.parent / "database.db"
         unfolded = config.unfold and len(photos) <= config.exhaustive_max_photos and database.is_file()
         unshared = bool(unfolded and len(unfold.view_conflicts(rec, unfold.verified_pairs(database))) < unfold.MIN_CONFLICTS)
-        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared)
+        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes)
         if consensus:
             log.warning("sfm: no time to test the reconstruction for a fold (%.0f s left): kept the %d of its %d photos that the "
                         "%d px reconstruction %s (a run with a larger --time-budget tests them all)", time_left,
                         consensus["kept"], consensus["of"], consensus["max_image_size"],
-                        "does not place otherwise" if unshared else "places alike")  # fmt: skip
+                        "does not place otherwise" if consensus["unshared"] else "places alike")  # fmt: skip
             return rec, images, {"skipped": "too little time left", "consensus": consensus}
         if unshared:  # no photos side by side without matches: no sign of a fold
             log.info("sfm: no reconstruction at another image size agrees with the one kept; it shows no sign of a fold "
@@ -874,7 +876,7 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     return strict, strict_images, record
 
 
-def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False) -> "dict | None":
+def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, unfolded: "frozenset[int]" = frozenset()) -> "dict | None":
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
@@ -884,20 +886,26 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False) 
     Two independent mappings rarely fold the same block the same way: in three runs of a 23-photo folder of
     colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model of all 56 photos) the chosen reconstructions held 11, 10 and 11 right photos of 23; the photos the other size
     placed alike were 10, 10 and 17, the first two all mutually consistent (within 0.4 and 0.6 degrees), the third 10
-    of 17 (both sizes folded alike there: no worse than before). Returns what was kept, or None where nothing was."""
+    of 17 (both sizes folded alike there: no worse than before). A rival at a size in ``unfolded`` (a fold found and
+    undone there: :func:`nerfpipe.plugins.unfold.unfold`) vouches only for the photos it places alike, ``keep_unshared``
+    or not: the photos it lacks include the block its unfolding left out. 23 of colmap_mouse's photos from the second
+    (session 74): unfolded at 1,024 px, 11 photos, all within 5 degrees of COLMAP's model; at 640 px 15 photos without a
+    conflict, 4 of them 148-166 degrees off and absent at 1,024 px: all 15 were kept. Returns what was kept
+    (``unshared``: whether the photos the rival lacks were), or None where nothing was."""
     if not rivals:
         return None
     rotations = model_rotations(rec)
     best = None
     for size, rival in rivals.items():
         errors = rotation_errors(rotations, rival)
-        alike = {n for n, e in errors.items() if e < 5.0} | ({n for n in rotations if n not in errors} if keep_unshared else set())
+        unshared = keep_unshared and size not in unfolded
+        alike = {n for n, e in errors.items() if e < 5.0} | ({n for n in rotations if n not in errors} if unshared else set())
         if best is None or len(alike) > len(best[1]):
-            best = size, alike
+            best = size, alike, unshared
     if best is None or not CHECK_VIEWS + 2 < len(best[1]) < len(rotations):
         return None
     keep_registered(rec, best[1])
-    return {"max_image_size": best[0], "kept": len(best[1]), "of": len(rotations)}
+    return {"max_image_size": best[0], "kept": len(best[1]), "of": len(rotations), "unshared": best[2]}
 
 
 STRICT_STEP = 10
@@ -1001,6 +1009,9 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
         record["still_folded"] = [c[0] for c in candidates if folded[c[0]]]
         candidates = [c for c in candidates if not folded[c[0]]]
     unfoldings = {config.max_image_size: first_unfolded or {}} | record.get("unfold", {})
+    unfolded = [size for size, u in unfoldings.items() if u.get("conflicts", 0) >= unfold.MIN_CONFLICTS and u.get("kept")]
+    if unfolded:  # a fold found and undone at these sizes (keep_consensus)
+        record["unfolded"] = unfolded
     conflicted = with_conflicts(candidates, unfoldings)
     if conflicted:
         record["with_conflicts"] = conflicted
