@@ -456,6 +456,25 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     assert not caplog.records
 
 
+def test_the_consensus_keeps_the_photos_a_rival_lacks_only_where_not_one_conflict_shows(tmp_path, monkeypatch):
+    """Under a budget too short for the fold test, the photos a rival reconstruction does not register stay only where
+    the kept one has no conflict at all (a 1,024 px reconstruction of 23 of colmap_mouse's photos with one conflict
+    kept 3 photos 5 degrees or more off that the 640 px one lacked: session 74)."""
+    import logging
+
+    from nerfpipe.plugins import sfm, unfold
+
+    (tmp_path / "database.db").write_bytes(b"")
+    chosen, seen = (object(), tmp_path / "images"), []
+    monkeypatch.setattr(unfold, "verified_pairs", lambda database: {})
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(): seen.append(keep_unshared))
+    photos = [tmp_path / f"{i}.jpg" for i in range(10)]
+    for conflicts, unshared in (([], True), ([("a", "b")], False), ([("a", "b"), ("c", "d")], False)):
+        monkeypatch.setattr(unfold, "view_conflicts", lambda rec, pairs, found=conflicts: found)
+        sfm.strict_check(photos, tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}})
+        assert seen[-1] is unshared, conflicts
+
+
 class _Counted:
     """A stand-in reconstruction for ``strict_check``'s tests: only its count of registered photos."""
 

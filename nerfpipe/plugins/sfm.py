@@ -828,7 +828,7 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     if time_left is not None and CHECK_MAX_SHARE * time_left < 2 * STRICT_FIT_SECONDS:
         database = images.parent / "database.db"
         unfolded = config.unfold and len(photos) <= config.exhaustive_max_photos and database.is_file()
-        unshared = bool(unfolded and len(unfold.view_conflicts(rec, unfold.verified_pairs(database))) < unfold.MIN_CONFLICTS)
+        unshared = bool(unfolded and not unfold.view_conflicts(rec, unfold.verified_pairs(database)))  # not one conflict
         consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes)
         if consensus:
             log.warning("sfm: no time to test the reconstruction for a fold (%.0f s left): kept the %d of its %d photos that the "
@@ -880,7 +880,8 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
-    fewer :func:`nerfpipe.plugins.unfold.view_conflicts` than ``MIN_CONFLICTS``): only the photos that rival places
+    not one :func:`nerfpipe.plugins.unfold.view_conflicts`; until session 74 fewer than ``MIN_CONFLICTS``, and a 1,024 px
+    reconstruction of 17 photos with one conflict kept 3 photos 5 degrees or more off that the rival lacked): only the photos that rival places
     otherwise, not those it leaves out (23 of colmap_mouse's photos, session 61: unfolded at 1,024 px, 21 registered,
     19 of them right; at 640 px 12, 10 of them placed alike: the 10 alone trained to 20.62 dB, `--time-budget 180`).
     Two independent mappings rarely fold the same block the same way: in three runs of a 23-photo folder of
