@@ -773,8 +773,10 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
-        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals,
-                                                     frozenset(record.get("unfolded", ())))  # fmt: skip
+        # witnesses whose unfolding left a block out, where the kept reconstruction was not itself unfolded (keep_consensus)
+        unfolded = frozenset(record.get("unfolded", ()))
+        witnesses = frozenset() if record.get("kept_max_image_size", config.max_image_size) in unfolded else unfolded
+        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals, witnesses)
     return rec, images, record
 
 
@@ -891,7 +893,10 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     undone there: :func:`nerfpipe.plugins.unfold.unfold`) vouches only for the photos it places alike, ``keep_unshared``
     or not: the photos it lacks include the block its unfolding left out. 23 of colmap_mouse's photos from the second
     (session 74): unfolded at 1,024 px, 11 photos, all within 5 degrees of COLMAP's model; at 640 px 15 photos without a
-    conflict, 4 of them 148-166 degrees off and absent at 1,024 px: all 15 were kept. Returns what was kept
+    conflict, 4 of them 148-166 degrees off and absent at 1,024 px: all 15 were kept. Only where ``rec`` was not unfolded
+    itself (:func:`choose_reconstruction`): an unfolded reconstruction's photos passed that test, and an unfolded 640 px
+    witness of 11 photos (23 of colmap_mouse's photos as HEIC) made the unfolded 1,024 px one's 18-19 right photos 11
+    in 2 of 5 runs. Returns what was kept
     (``unshared``: whether the photos the rival lacks were), or None where nothing was."""
     if not rivals:
         return None
@@ -1041,6 +1046,7 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
         group = next(g for g in groups if kept in g)
         return {size: model_rotations(other) for size, other, _ in few} | {candidates[i][0]: rotations[i] for i in range(len(candidates)) if i not in group}
 
+    record["kept_max_image_size"] = candidates[0][0]  # unless the check below keeps another
     if len(groups) == 1:
         return candidates[0][1], candidates[0][2], record, rivals(0)
     reps = [max(group, key=lambda i: candidates[i][1].num_reg_images()) for group in groups]
