@@ -475,6 +475,24 @@ def test_the_consensus_keeps_the_photos_a_rival_lacks_only_where_not_one_conflic
         assert seen[-1] is unshared, conflicts
 
 
+def test_an_unfolded_witness_limits_the_consensus_only_of_a_reconstruction_not_unfolded_itself(tmp_path, monkeypatch):
+    """``choose_reconstruction`` hands ``strict_check`` the unfolded image sizes as witnesses that vouch only for the
+    photos they place alike, unless the kept reconstruction is one of them (23 of colmap_mouse's photos as HEIC, session
+    74: an unfolded 640 px witness of 11 photos cut an unfolded 1,024 px reconstruction's 18-19 right photos to 11)."""
+    import logging
+
+    from nerfpipe.plugins import sfm
+
+    seen = []
+    monkeypatch.setattr(sfm, "strict_check", lambda photos, work, config, chosen, left, log, others, rivals, witnesses:
+                        seen.append(witnesses) or (*chosen, {}))
+    for kept, unfolded, witnesses in ((640, [1024], {1024}), (1024, [1024, 640], set()), (1024, [640], {640}), (1024, None, set())):
+        record = {"kept_max_image_size": kept, **({"unfolded": unfolded} if unfolded else {})}
+        monkeypatch.setattr(sfm, "_choose_by_size", lambda *args, r=record: ("rec", tmp_path / "images", dict(r), {640: {}}))
+        sfm.choose_reconstruction([], tmp_path, sfm.SfmConfig(), ("rec", tmp_path / "images"), 100.0, logging.getLogger("test"))
+        assert seen[-1] == witnesses, (kept, unfolded)
+
+
 class _Counted:
     """A stand-in reconstruction for ``strict_check``'s tests: only its count of registered photos."""
 
