@@ -810,7 +810,8 @@ on a 2-core CPU; one or two weakly attached photos are left to the reconstructio
 
 
 def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log,
-                 others: "tuple[Path, ...]" = (), rivals: "dict | None" = None, unfolded_sizes: "frozenset[int]" = frozenset()) -> "tuple[object, Path, dict]":
+                 others: "tuple[Path, ...]" = (), rivals: "dict | None" = None,
+                 unfolded_sizes: "frozenset[int]" = frozenset()) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the chosen reconstruction's own verified
     matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than
     ``strict_min_inliers``, then fewer (:func:`strict_thresholds`), then the same with the matches of the work folders
@@ -1015,7 +1016,7 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
         record["still_folded"] = [c[0] for c in candidates if folded[c[0]]]
         candidates = [c for c in candidates if not folded[c[0]]]
     unfoldings = {config.max_image_size: first_unfolded or {}} | record.get("unfold", {})
-    unfolded = [size for size, u in unfoldings.items() if u.get("conflicts", 0) >= unfold.MIN_CONFLICTS and u.get("kept")]
+    unfolded = [size for size, u in unfoldings.items() if u.get("kept")]  # unfold.unfold keeps a remap only of a fold
     if unfolded:  # a fold found and undone at these sizes (keep_consensus)
         record["unfolded"] = unfolded
     conflicted = with_conflicts(candidates, unfoldings)
