@@ -86,6 +86,11 @@ def main(argv: "list[str] | None" = None) -> int:
     return code
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` for the command line: ``nerfpipe: warning: MESSAGE`` on stderr."""
+    print(f"nerfpipe: warning: {message}", file=sys.stderr if file is None else file)
+
+
 def _main(argv: "list[str] | None") -> int:
     from nerfpipe.util import runtime
 
@@ -96,6 +101,8 @@ def _main(argv: "list[str] | None") -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
+            if not debug:  # one line a warning, as errors are (where it was raised: with --debug)
+                warnings.showwarning = _one_line_warning
             result = _dispatch(argv)
     except NerfpipeError as exc:
         if debug:

@@ -211,12 +211,25 @@ def test_error_unsupported_model(tmp_path):
     assert "FULL_OPENCV" in err.problem and err.path == tmp_path / "sparse" / "0" / "cameras.bin"
 
 
-def test_error_missing_image(tmp_path):
+def test_images_whose_file_is_missing_are_left_out_with_one_warning(tmp_path):
+    """A photograph deleted after the reconstruction: its camera and its track elements are left out, the rest load as
+    before; every file missing (the wrong folder) is one error naming the folder."""
     root = make_scene(tmp_path, "PINHOLE")
-    victim = sorted((root / "images").iterdir())[3]
-    victim.unlink()
+    whole = data_adapters.load(root)
+    files = sorted((root / "images").iterdir())
+    for victim in files[3], files[5]:
+        victim.unlink()
+    with pytest.warns(UserWarning, match=rf"2 of the {len(files)} images .* have no file there and are left out \(first: {files[3].name}, {files[5].name}"):
+        scene = data_adapters.load(root)
+    keep = [k for k in range(len(files)) if k not in (3, 5)]
+    assert [p.name for p in scene.images.paths] == [files[k].name for k in keep]
+    torch.testing.assert_close(scene.cameras.fx, whole.cameras.fx[keep])
+    seen = {int(c) for c in scene.points.track_camera}
+    assert seen <= set(range(len(keep))) and len(scene.points.track_camera) < len(whole.points.track_camera)
+    for f in files:
+        f.unlink(missing_ok=True)
     err = _error(root)
-    assert "missing" in err.problem and err.path == victim
+    assert f"all {len(files)} images" in err.problem and "missing" in err.problem and err.path == root / "images"
 
 
 def test_error_image_size_mismatch(tmp_path):

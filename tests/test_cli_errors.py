@@ -25,11 +25,12 @@ def _unsupported_model(root):
     return make_scene(root, "FULL_OPENCV", frames=3, points=20), root / "sparse" / "0" / "cameras.bin"
 
 
-def _missing_image(root):
+def _missing_images(root):
+    """Every registered image's file missing (one missing is left out with a warning: below)."""
     make_scene(root, "PINHOLE", frames=3, points=20)
-    victim = sorted((root / "images").iterdir())[1]
-    victim.unlink()
-    return root, victim
+    for victim in (root / "images").iterdir():
+        victim.unlink()
+    return root, root / "images"
 
 
 def _size_mismatch(root):
@@ -60,7 +61,7 @@ def _raw_photos(root):
 CASES = {
     "empty-model": _empty_model,
     "unsupported-camera": _unsupported_model,
-    "missing-image": _missing_image,
+    "missing-images": _missing_images,
     "size-mismatch": _size_mismatch,
     "nonexistent": _nonexistent,
     "unknown-format": _unknown_format,
@@ -82,6 +83,16 @@ def test_one_line_error(tmp_path, capsys, case, command):
     assert "Traceback" not in err
     if case == "raw-photos":  # said what they are and what to do
         assert "3 photos in a format nerfpipe does not read (.CR2): convert them to JPEG" in lines[0]
+
+
+def test_a_warning_is_one_line(tmp_path, capsys):
+    """A registered image without its file: the command goes on, with one ``nerfpipe: warning:`` line naming it."""
+    make_scene(tmp_path, "PINHOLE", frames=3, points=20)
+    victim = sorted((tmp_path / "images").iterdir())[1]
+    victim.unlink()
+    assert main(["info", str(tmp_path)]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("nerfpipe")]
+    assert len(lines) == 1 and lines[0].startswith("nerfpipe: warning: ") and victim.name in lines[0], lines
 
 
 def test_debug_raises(tmp_path):

@@ -5,7 +5,9 @@ registered images), ``<root>/sparse/``, or the model files ``cameras``, ``images
 ``.txt``) directly in ``<root>``.
 Images are looked up as ``<root>/images/<image name>`` (or ``<root>/<image name>`` where there is no ``images/``
 folder: COLMAP run on the photos' own folder); a name (symlinks resolved) must stay inside that folder
-(:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos.
+(:func:`nerfpipe.util.paths.resolve_inside`), which may itself be a link to the photos. A registered image whose file
+is missing (a photograph deleted after the reconstruction) is left out with one warning, as the transforms adapter
+skips a frame without its image; all of them missing is an error naming the folder.
 An image may be a downscaled copy of what COLMAP saw (the same aspect, to a pixel): its camera and
 keypoints are scaled to it.
 
@@ -20,6 +22,7 @@ by keypoint. ``meta`` keeps ``colmap_mean_reprojection_error`` (pycolmap's figur
 load: the mean over points of each track's mean error).
 """
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -183,8 +186,6 @@ def _convert_camera(cam, cameras_file: Path) -> "tuple[tuple, str]":
 def _image_size(path: Path, cam) -> "tuple[int, int]":
     """The image's ``(width, height)``: its camera's, or the same picture downscaled (``images/`` replaced by
     smaller copies after SfM, as LLFF's and mip-NeRF 360's ``images_N`` folders are): the camera is scaled to it."""
-    if not path.is_file():
-        raise NerfpipeError("image file is missing (registered in the COLMAP model)", path)
     h, w, _ = image_header(path)
     s = w / cam.width
     if (w, h) != (cam.width, cam.height) and not (1 / 64 <= s < 1 and abs(h - cam.height * s) <= 1):
@@ -269,14 +270,31 @@ def _cameras(rec, images, cameras_file: Path, images_file: Path) -> "tuple[Camer
     return cams, models
 
 
-def image_folder(root: Path, first_name: str) -> Path:
+def image_folder(root: Path, names: "list[str]") -> Path:
     """Where the model's image names are relative to: ``root/images``, or ``root`` itself where there is no
-    ``images/`` folder and the first registered image lies in ``root`` (COLMAP run with the photos' own folder as its
+    ``images/`` folder and a registered image lies in ``root`` (COLMAP run with the photos' own folder as its
     image path, the model written beside them)."""
     images = root / "images"
-    if not images.is_dir() and (root / first_name).is_file():
+    if not images.is_dir() and any((root / name).is_file() for name in names):
         return root
     return images
+
+
+def _with_files(images: list, folder: Path, images_file: Path) -> "tuple[list, list[Path]]":
+    """The registered images whose file exists in ``folder``, and those files. A photograph deleted after the
+    reconstruction (a blurred one, say) is left out with one warning, as the transforms adapter and instant-ngp skip a
+    frame without its image; none found at all is an error naming the folder."""
+    paths = [resolve_inside(folder, im.name, images_file) for im in images]
+    kept = [k for k, p in enumerate(paths) if p.is_file()]
+    if not kept:
+        raise NerfpipeError(f"the files of all {len(images)} images registered in the COLMAP model are missing here "
+                            f"(first: {images[0].name}); is this the folder the photographs were reconstructed from?", folder)  # fmt: skip
+    if len(kept) < len(images):
+        missing = [paths[k].name for k in sorted(set(range(len(images))) - set(kept))]
+        have = "has" if len(missing) == 1 else "have"
+        warnings.warn(f"{folder}: {len(missing)} of the {len(images)} images registered in the COLMAP model {have} no file "
+                      f"there and {'is' if have == 'has' else 'are'} left out (first: {', '.join(missing[:3])})", UserWarning, stacklevel=3)  # fmt: skip
+    return [images[k] for k in kept], [paths[k] for k in kept]
 
 
 def read(path: Path) -> SceneData:
@@ -292,9 +310,9 @@ def read(path: Path) -> SceneData:
     images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
     if not images:
         raise NerfpipeError("COLMAP model has no registered images", images_file)
+    folder = image_folder(root, [im.name for im in images])
+    images, paths = _with_files(images, folder, images_file)
     cams, models = _cameras(rec, images, cameras_file, images_file)
-    folder = image_folder(root, images[0].name)
-    paths = [resolve_inside(folder, im.name, images_file) for im in images]
     width, height = zip(*(_image_size(p, rec.camera(im.camera_id)) for p, im in zip(paths, images)))
     cams = cams.resized(torch.tensor(width), torch.tensor(height))  # the same cameras unless the images are downscaled copies
     return _assemble(root, rec, images, cams, models, paths)
