@@ -58,3 +58,17 @@ def test_a_part_with_few_points_stays_inside_and_single_outliers_stay_out():
     assert float(object_region(cams, xyz, cover=None)[1, 0]) < 0.9  # the robust extent alone (the rule until session 75) cuts it off
     assert torch.equal(object_region(cams, body), object_region(cams, body, cover=None))  # points all inside: as it was
     assert not isolated(xyz[:5]).any()  # too few to say
+
+
+def test_points_level_with_the_base_or_below_do_not_move_the_region():
+    """A patch of textured table beyond the robust extent (as dense as the arm above, level with the object's base) and a
+    patch of floor below it are the surroundings: the region is what the robust extent gives."""
+    cams = ring_cameras(distance=4.0)
+    gen = torch.Generator().manual_seed(3)
+    body = (torch.rand(2000, 3, generator=gen, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.4, 0.3], dtype=torch.float64)
+    table = torch.rand(15, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.1, 0.1, 0.01], dtype=torch.float64) + torch.tensor([0.8, -0.05, -0.15], dtype=torch.float64)
+    floor = torch.rand(15, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.1, 0.1, 0.01], dtype=torch.float64) + torch.tensor([0.0, -0.05, -0.9], dtype=torch.float64)
+    xyz = torch.cat([body, table, floor])
+    assert torch.equal(object_region(cams, xyz), object_region(cams, xyz, cover=None))
+    raised = torch.cat([body, table + torch.tensor([0.0, 0.0, 0.15], dtype=torch.float64)])  # the same patch half-way up: a part
+    assert float(object_region(cams, raised)[1, 0]) > float(object_region(cams, raised, cover=None)[1, 0]) + 0.1
