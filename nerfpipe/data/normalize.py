@@ -258,9 +258,9 @@ def object_region(
 def _cover_outermost(box: Float[Tensor, "2 3"], pts: Float[Tensor, "num_points 3"], cover: float) -> Float[Tensor, "2 3"]:
     """``box`` with each side that the outermost points not :func:`isolated` lie beyond moved out to them, plus ``cover``
     times the box's extent (:data:`OBJECT_COVER`). Only the top and the four walls move (the world's up is +z), the walls
-    only for points above :data:`COVER_ABOVE` of the box's robust height: what lies level with the object's base or below
-    it (a textured table reaching to the edge of the points' reach, a floor) is the surroundings, not a plain part of the
-    object."""
+    only for points above the :data:`COVER_ABOVE` quantile of the points' heights: what lies level with the object's base
+    or below it (a textured table reaching to the edge of the points' reach, a floor) is the surroundings, not a plain
+    part of the object."""
     if len(pts) > ISOLATED_MAX_POINTS:
         pts = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:ISOLATED_MAX_POINTS].to(pts.device)]
     base = torch.quantile(pts[:, 2], COVER_ABOVE) if len(pts) else None
