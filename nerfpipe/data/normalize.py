@@ -191,11 +191,11 @@ part seen by few of the photos carries few points: in a 23-photo cut of colmap_m
 COLMAP's poses) the mouse's lilac side lay beyond the 2 % quantile of the points and the box cut it flat (straight
 edges in the depth orbit, its end rendered coarsely by the field behind the box). Side by side at equal steps (3
 held-out views at 400 px, one ray per pixel, the average after 900 steps, seeds 0 / 1): **24.98 / 25.16 dB** against
-24.71 / 24.77, the end rounded in the orbit (the side 1.113 out instead of 0.767; a fog slab around the mouse in most runs of this
-cut with either box). Tried: 0.1 (24.97, seed 0); the
-0.5 % quantile of the points not isolated instead (24.97 / 25.04, but on 23 of ngp_fox's photos through SfM 26.13
-against 26.26: a box of 1.28x the volume). The shared scenes' reconstructions (colmap_mouse, 23 of ngp_fox's photos,
-the HEIC and offset cuts through SfM) and the synthetic scenes keep their region: their points end inside the margin."""
+24.71 / 24.77, the end rounded in the orbit (the side 1.113 out instead of 0.767; a fog slab around the mouse in most
+runs of this cut with either box). Tried: 0.1 (24.97, seed 0); the 0.5 % quantile of the points not isolated instead
+(24.97 / 25.04, but on 23 of ngp_fox's photos through SfM 26.13 against 26.26: a box of 1.28x the volume). The shared
+scenes' reconstructions (colmap_mouse, 23 of ngp_fox's photos, the HEIC and offset cuts through SfM) and the synthetic
+scenes keep their region: their points end inside the margin."""
 
 ISOLATED_NEIGHBOURS = 8
 ISOLATED_FACTOR = 3.0
