@@ -17,6 +17,11 @@ def _object(n: int = 2000, seed: int = 0) -> torch.Tensor:
     return torch.cat([textured, plain])
 
 
+def _block(gen: torch.Generator, n: int = 2000) -> torch.Tensor:
+    """Points spread evenly over a 1.0 x 0.4 x 0.3 block at the origin."""
+    return (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.4, 0.3], dtype=torch.float64)
+
+
 def test_far_background_points_do_not_grow_the_region():
     cams = ring_cameras(distance=4.0)
     obj = _object()
@@ -46,7 +51,7 @@ def test_a_part_with_few_points_stays_inside_and_single_outliers_stay_out():
 
     cams = ring_cameras(distance=4.0)
     gen = torch.Generator().manual_seed(2)
-    body = (torch.rand(2000, 3, generator=gen, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.4, 0.3], dtype=torch.float64)
+    body = _block(gen)
     arm = torch.rand(15, 3, generator=gen, dtype=torch.float64) * 0.1 + torch.tensor([0.8, -0.05, -0.05], dtype=torch.float64)
     strays = torch.rand(10, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64) + torch.tensor([1.5, -1.0, -1.0], dtype=torch.float64)
     xyz = torch.cat([body, arm, strays])
@@ -65,7 +70,7 @@ def test_points_level_with_the_base_or_below_do_not_move_the_region():
     patch of floor below it are the surroundings: the region is what the robust extent gives."""
     cams = ring_cameras(distance=4.0)
     gen = torch.Generator().manual_seed(3)
-    body = (torch.rand(2000, 3, generator=gen, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.4, 0.3], dtype=torch.float64)
+    body = _block(gen)
     table = torch.rand(15, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.1, 0.1, 0.01], dtype=torch.float64) + torch.tensor([0.8, -0.05, -0.15], dtype=torch.float64)
     floor = torch.rand(15, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.1, 0.1, 0.01], dtype=torch.float64) + torch.tensor([0.0, -0.05, -0.9], dtype=torch.float64)
     xyz = torch.cat([body, table, floor])

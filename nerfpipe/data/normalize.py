@@ -242,8 +242,9 @@ def object_region(
     """The object region ``[min, max]`` (float64) of the sparse points within ``reach`` median camera distances of the
     point the cameras look at: their robust extent (``quantile`` to ``1 - quantile`` per axis) grown by ``pad`` times
     that extent, and on a side where the outermost points that are not :func:`isolated` lie beyond that, out to them
-    and by ``cover`` times the extent further (:data:`OBJECT_COVER`; None: not). What lies beyond is modelled as background (the ``fast`` model's field behind
-    the box), not as fog in the object's box. All points count when fewer than 20 are that close.
+    and by ``cover`` times the extent further (:data:`OBJECT_COVER`; None: not). What lies beyond is modelled as
+    background (the ``fast`` model's field behind the box), not as fog in the object's box. All points count when
+    fewer than 20 are that close.
     """
     xyz = xyz.double()
     focus = focus_point(cameras)
@@ -264,10 +265,11 @@ def _cover_outermost(box: Float[Tensor, "2 3"], pts: Float[Tensor, "num_points 3
     part of the object."""
     if len(pts) > ISOLATED_MAX_POINTS:
         pts = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:ISOLATED_MAX_POINTS].to(pts.device)]
-    base = torch.quantile(pts[:, 2], COVER_ABOVE) if len(pts) else None
+    heights = pts[:, 2]
     pts = pts[~isolated(pts)]
     if len(pts) < 20:
         return box
+    base = torch.quantile(heights, COVER_ABOVE)
     q = torch.tensor([COVER_QUANTILE, 1 - COVER_QUANTILE], dtype=pts.dtype, device=pts.device)
     reach_out = cover * (box[1] - box[0])
     lo, hi = box[0].clone(), box[1].clone()

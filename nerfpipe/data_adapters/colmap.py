@@ -285,15 +285,16 @@ def _with_files(images: list, folder: Path, images_file: Path) -> "tuple[list, l
     reconstruction (a blurred one, say) is left out with one warning, as the transforms adapter and instant-ngp skip a
     frame without its image; none found at all is an error naming the folder."""
     paths = [resolve_inside(folder, im.name, images_file) for im in images]
-    kept = [k for k, p in enumerate(paths) if p.is_file()]
-    if not kept:
+    found = [p.is_file() for p in paths]
+    if not any(found):
         raise NerfpipeError(f"the files of all {len(images)} images registered in the COLMAP model are missing here "
                             f"(first: {images[0].name}); is this the folder the photographs were reconstructed from?", folder)  # fmt: skip
-    if len(kept) < len(images):
-        missing = [paths[k].name for k in sorted(set(range(len(images))) - set(kept))]
-        have = "has" if len(missing) == 1 else "have"
-        warnings.warn(f"{folder}: {len(missing)} of the {len(images)} images registered in the COLMAP model {have} no file "
-                      f"there and {'is' if have == 'has' else 'are'} left out (first: {', '.join(missing[:3])})", UserWarning, stacklevel=3)  # fmt: skip
+    missing = [p.name for p, f in zip(paths, found) if not f]
+    if missing:
+        one = len(missing) == 1
+        warnings.warn(f"{folder}: {len(missing)} of the {len(images)} images registered in the COLMAP model {'has' if one else 'have'} no "
+                      f"file there and {'is' if one else 'are'} left out (first: {', '.join(missing[:3])})", UserWarning, stacklevel=3)  # fmt: skip
+    kept = [k for k, f in enumerate(found) if f]
     return [images[k] for k in kept], [paths[k] for k in kept]
 
 
