@@ -742,29 +742,28 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
     assert _model(sparsity_weight=1.0, sparsity_until=10).sparsity_until == 10
 
 
-def test_distortion_loss_is_on_where_the_sparsity_is_and_gathers_each_rays_weights():
-    """Real captures of an object photographed from around it train with the box's distortion loss by default (the
-    fog the box grows after the sparsity loss stops), less of it the more photographs they have; facades and
-    synthetic scenes do not. The loss is the packed distortion of the training rays' weights, and descending it
+def test_distortion_loss_is_on_for_real_captures_and_gathers_each_rays_weights():
+    """Real captures with the field behind the box train with the box's distortion loss by default (the fog a few-view
+    capture grows in the box), less of it the more photographs they have; synthetic scenes do not. The loss is the packed distortion of the training rays' weights, and descending it
     gathers a ray's spread weights."""
     from nerfpipe.functional.packed import distortion_loss_packed
-    from nerfpipe.models.fast import DISTORTION_AROUND, DISTORTION_FULL_IMAGES, SPARSITY_MIN_ARC
+    from nerfpipe.models.fast import DISTORTION_REAL, DISTORTION_FULL_IMAGES, SPARSITY_MIN_ARC
 
     info = dict(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=20, pixels_per_image=100, unbounded=True)
     weight = lambda **kw: FastConfig(preset="small").setup(SceneInfo(**{**info, **kw})).distortion_weight  # noqa: E731
-    assert weight(arc=2 * math.pi) == weight(arc=SPARSITY_MIN_ARC) == DISTORTION_AROUND > 0  # 20 training images
-    assert weight(arc=2 * math.pi, num_images=DISTORTION_FULL_IMAGES) == DISTORTION_AROUND
-    assert weight(arc=2 * math.pi, num_images=2 * DISTORTION_FULL_IMAGES) == pytest.approx(DISTORTION_AROUND / 4)  # more photographs, less prior
-    assert weight(arc=math.radians(63)) == 0.0  # a facade
+    assert weight(arc=2 * math.pi) == weight(arc=SPARSITY_MIN_ARC) == DISTORTION_REAL > 0  # 20 training images
+    assert weight(arc=2 * math.pi, num_images=DISTORTION_FULL_IMAGES) == DISTORTION_REAL
+    assert weight(arc=2 * math.pi, num_images=2 * DISTORTION_FULL_IMAGES) == pytest.approx(DISTORTION_REAL / 4)  # more photographs, less prior
+    assert weight(arc=math.radians(63)) == DISTORTION_REAL  # a facade: the sky's fog in front of it too
     assert weight(arc=2 * math.pi, unbounded=False, has_alpha=True) == 0.0  # synthetic, no field behind the box
     assert FastConfig(preset="small", background_field=False).setup(SceneInfo(**info, arc=2 * math.pi)).distortion_weight == 0.0
     assert FastConfig(preset="small", distortion_weight=0.0).setup(SceneInfo(**info, arc=2 * math.pi)).distortion_weight == 0.0
     around = FastConfig(preset="small").setup(SceneInfo(**info, arc=2 * math.pi))
-    assert around.stats()["distortion_weight"] == DISTORTION_AROUND  # in metrics.json
+    assert around.stats()["distortion_weight"] == DISTORTION_REAL  # in metrics.json
     around.train()
     out = around.get_outputs(_rays(256), torch.zeros(256, 3))
     loss = around.get_losses(out, torch.full((256, 3), 0.5))["distortion"].detach()
-    assert float(loss) == pytest.approx(DISTORTION_AROUND * float(out.extras["distortion"].detach())) and float(loss) > 0
+    assert float(loss) == pytest.approx(DISTORTION_REAL * float(out.extras["distortion"].detach())) and float(loss) > 0
     around.eval()
     with torch.no_grad():
         assert "distortion" not in around.get_losses(around.get_outputs(_rays(64), torch.zeros(64, 3)), torch.zeros(64, 3))
