@@ -743,8 +743,8 @@ def test_sparsity_clears_density_no_photograph_needs_and_is_on_for_real_captures
 
 
 def test_distortion_loss_is_on_for_real_captures_and_gathers_each_rays_weights():
-    """Real captures with the field behind the box train with the box's distortion loss by default (the fog a few-view
-    capture grows in the box), less of it the more photographs they have; synthetic scenes do not. The loss is the packed distortion of the training rays' weights, and descending it
+    """Real captures with the field behind the box train with the box's distortion loss by default (the fog a
+    few-view capture grows in the box), less of it the more photographs they have; synthetic scenes do not. The loss is the packed distortion of the training rays' weights, and descending it
     gathers a ray's spread weights."""
     from nerfpipe.functional.packed import distortion_loss_packed
     from nerfpipe.models.fast import DISTORTION_REAL, DISTORTION_FULL_IMAGES, SPARSITY_MIN_ARC

@@ -384,9 +384,10 @@ at 0.005; end to end (``nerfpipe run --time-budget 300``, alone, the same hour) 
 0.0049 (one over the count) and **25.17** with 0.0024 (the square); the room with 56 views (49 training images, 7
 views) after 1,000 steps 31.49 against 32.28 at 0.01 and 31.97 at 0.0049. Captures that do not surround their object
 (no sparsity loss there) gain or keep (after 600 steps, none against 0.01): 23 of ngp_fox's photos through SfM (20
-training images, 97° of azimuth, 3 views) 25.61 against **25.85 dB** at 0.85× the seconds per step; photos_sacre_coeur's
-sfm folder (8, 2 views) appearance fitted 15.57 against **15.87** (colour fitted 15.04 / 15.36, the mean code 11.86 /
-12.17 averaged) at 0.85×, fewer cloud pieces in the orbit; photos_sceaux_castle's (9, 2 views) 15.14 against 15.13."""
+training images, 97° of azimuth, 3 views) 25.61 against **25.85 dB** at 0.85× the seconds per step;
+photos_sacre_coeur's sfm folder (8, 2 views) appearance fitted 15.57 against **15.87** (colour fitted 15.04 / 15.36,
+the mean code 11.86 / 12.17 averaged) at 0.85×, fewer cloud pieces in the orbit, another of its sfm folders 15.57
+against 15.54; photos_sceaux_castle's (9, 2 views) 15.14 against 15.13."""
 DISTORTION_FULL_IMAGES = 24
 """Training images up to which real captures get all of :data:`DISTORTION_REAL`."""
 
