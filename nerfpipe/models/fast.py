@@ -377,8 +377,8 @@ parameter average scored after the last mark), 0 against 0.01: the posed cut (3 
 24.98 / 25.16 against **24.99 / 25.02 dB**, seeds 2 / 3 after 600 24.81 / 24.78 against 24.65 / 24.67, the slab gone
 in all four (0.005: seed 0's slab stays, 24.95 / 25.05); 23 of colmap_mouse's photographs through SfM (17 training
 images, 3 views) 24.04 against **24.14** after 900; a synthetic room (``nerfpipe synth --scene room --views 26 --size
-400x300``, 22 training images, 4 views) 27.03 against **28.93** after 1,000, dark floaters over the floor gone; 0.85 /
-0.83 / 0.87 the seconds per step (7–8 against 11 samples per ray). With more photographs the veil is thinner and the
+400x300``, 22 training images, 4 views) 27.03 against **28.93** after 1,000, dark floaters over the floor gone; 0.83 /
+0.93 / 0.83 the seconds per step (the posed cut: 7 against 11 samples per ray). With more photographs the veil is thinner and the
 loss costs detail: colmap_mouse (49 training images, 7 views) after 900 steps 24.96 against 24.84 at 0.01 and 25.01
 at 0.005; end to end (``nerfpipe run --time-budget 300``, alone, the same hour) 25.15 dB with none, 25.01 with
 0.0049 (one over the count) and **25.17** with 0.0024 (the square); the room with 56 views (49 training images, 7
