@@ -53,6 +53,7 @@ LABELS = {
     "samples_per_ray": ("samples per ray", ""), "occupied_fraction": ("occupied fraction", ""),
     "sparsity_weight": ("sparsity loss weight (0: off)", ""),
     "evidence_sparsity_weight": ("sparsity loss weight away from the sparse points (0: off)", ""),
+    "distortion_weight": ("distortion loss weight in the box (0: off)", ""),
     "behind_front": ("rays through the box read the surroundings in front of it (1: on)", ""),
     "free_space_violation": ("free-space violation (sight lines blocked by the mesh)", ""),
     "sight_lines": ("sight lines (camera to sparse point)", ""), "free_space_tau": ("free-space slack before the point", ""),

@@ -885,8 +885,9 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
     not one :func:`nerfpipe.plugins.unfold.view_conflicts`; until session 74 fewer than ``MIN_CONFLICTS``, and a 1,024
     px reconstruction of 17 photos with one conflict kept 3 photos 5 degrees or more off that the rival lacked): only
-    the photos that rival places otherwise, not those it leaves out (23 of colmap_mouse's photos, session 61: unfolded at 1,024 px, 21 registered,
-    19 of them right; at 640 px 12, 10 of them placed alike: the 10 alone trained to 20.62 dB, `--time-budget 180`).
+    the photos that rival places otherwise, not those it leaves out (23 of colmap_mouse's photos, session 61:
+    unfolded at 1,024 px, 21 registered, 19 of them right; at 640 px 12, 10 of them placed alike: the 10 alone
+    trained to 20.62 dB, `--time-budget 180`).
     Two independent mappings rarely fold the same block the same way: in three runs of a 23-photo folder of
     colmap_mouse at 1,024 and 640 px (session 41; aligned to COLMAP's model of all 56 photos) the chosen reconstructions held 11, 10 and 11 right photos of 23; the photos the other size
     placed alike were 10, 10 and 17, the first two all mutually consistent (within 0.4 and 0.6 degrees), the third 10
