@@ -85,3 +85,30 @@ def test_public_names_resolve_and_heavy_libraries_stay_lazy():
     assert all(hasattr(mesh, name) for name in mesh.__all__)
     code = "import sys, nerfpipe.mesh; print(sorted(m for m in ('open3d', 'pymeshlab', 'skimage', 'trimesh') if m in sys.modules))"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
+
+
+def cut_ball(p):
+    """A ball (r 0.5) centred 0.2 inside the box's +x side: the side cuts a round hole into its surface."""
+    return 200.0 * torch.sigmoid((0.5 - (p - torch.tensor([0.8, 0.0, 0.0])).norm(dim=-1)) / 0.02)
+
+
+@pytest.mark.parametrize("holes", [0, 300])
+def test_holes_up_to_the_limit_are_closed_after_cleaning(holes):
+    cfg = MeshConfig(method="mc", resolution=32, remove_unseen=False, level_from="opacity", level_opacity=0.5, close_holes=holes)
+    out = build_meshes(cfg, BOX, density_fn=cut_ball)
+    assert out.figures["box_side_faces_removed"] > 0  # the cut side went: a hole of about 50 edges
+    assert out.full.to_trimesh().is_watertight == (holes > 0)
+    assert out.figures.get("hole_faces_added", 0) > 0 if holes else "hole_faces_added" not in out.figures
+
+
+def test_a_mesh_whose_holes_cannot_be_closed_keeps_them_with_a_warning(monkeypatch):
+    import nerfpipe.mesh.pipeline as pipeline
+
+    def refuse(mesh, max_hole_edges):
+        raise NerfpipeError("closing holes failed: non-manifold")
+
+    monkeypatch.setattr(pipeline, "close_holes", refuse)
+    cfg = MeshConfig(method="mc", resolution=32, remove_unseen=False, level_from="opacity", level_opacity=0.5)
+    with pytest.warns(UserWarning, match="keeps its holes"):
+        out = build_meshes(cfg, BOX, density_fn=cut_ball)
+    assert out.figures["hole_faces_added"] == 0 and not out.full.to_trimesh().is_watertight

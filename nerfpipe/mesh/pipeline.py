@@ -9,6 +9,7 @@ is written until every mesh is built, so bad input leaves no files behind.
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -176,8 +177,15 @@ class MeshConfig:
     remove_unseen_from_behind: bool = True
     """With ``remove_unseen``: a face counts as seen only from its outer side, so the inside of a blob or of
     the object's shell, seen through a hole in its front, goes too (the red of mesh_views.png)."""
-    close_holes: int = 0
-    """Fill holes with at most this many boundary edges (0: leave holes)."""
+    close_holes: int = 300
+    """Fill holes with at most this many boundary edges, after the cleaning passes (0: leave holes); a mesh
+    pymeshlab cannot fill keeps its holes, with a warning. Larger holes stay open: on the real captures the bottom
+    where the support plane went (1,300-2,200 edges); a smaller object's bottom gets a lid. Session 80, the same TSDF meshes with 0 / 300: colmap_mouse's 258 holes
+    (5,417 boundary edges) -> 44 (1,513), the holes of its lilac end filled in ``mesh_views.png``, 98.0 % of the
+    points within 1 % both, free-space violation 0.0213 / 0.0215; the synthetic demo against its true mesh
+    F-score@1 % 0.9890 / 0.9892, Chamfer-L1 0.00569 / 0.00572, normal consistency 0.942 / 0.939, violation
+    0.0176 / 0.0176; session 78, the posed 23-photo cut of colmap_mouse: 282 holes -> 34, 99.0 / 99.1 % within 1 %,
+    violation 0.0185 / 0.0191. About a second on 150,000 faces."""
     smooth: "int | None" = None
     """Steps of feature-preserving smoothing after cleaning (:func:`nerfpipe.mesh.clean.smooth`; 0: none). Default: 1
     with tsdf, whose surface from a trained field is rippled a few voxels wide (its shading grainy in
@@ -307,8 +315,14 @@ def _clean(mesh: TriangleMesh, cfg: MeshConfig, cameras: "Cameras | None", figur
         unsupported = (0.01 * robust_diagonal(points), cfg.unsupported_density, cfg.unsupported_area) if points is not None and cfg.unsupported_density > 0 else None
         mesh = remove_small_components(mesh, min_component, gap, points, unsupported, cfg.far_min_points)
         figures["floater_faces_removed"] = before - mesh.num_faces
-    if cfg.close_holes > 0:
-        mesh = close_holes(mesh, cfg.close_holes)
+    if cfg.close_holes > 0 and mesh.num_faces > 0:
+        before = mesh.num_faces
+        try:
+            mesh = close_holes(mesh, cfg.close_holes)
+            figures["hole_faces_added"] = mesh.num_faces - before
+        except NerfpipeError as exc:
+            warnings.warn(f"{exc}; the mesh keeps its holes", stacklevel=2)
+            figures["hole_faces_added"] = 0
     if mesh.num_faces == 0:
         raise NerfpipeError("nothing is left of the mesh after cleaning (every face was unseen or a floater)")
     return mesh
