@@ -4,6 +4,7 @@ stages on real data (load, check, export read back), and the example third-party
 import importlib.metadata
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -363,11 +364,15 @@ def test_in_memory_reconstruction_through_the_python_api(scene_path, tmp_path):
 
     root = scene_path("colmap_mouse")
     rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
-    result = Pipeline(["load", "check"]).run(None, tmp_path, reconstruction=rec, images=root / "images")
+    run = tmp_path / "run"
+    result = Pipeline(["load", "check"]).run(None, run, reconstruction=rec, images=root / "images")
     scene = result["scene"]
     assert len(scene.cameras) == rec.num_reg_images() and result["check"]["failures"] == []
-    # the run folder alone is enough to restore the scene (resume / ``nerfpipe stage``)
-    fresh = Pipeline(["load", "check"]).run(None, tmp_path)
+    assert json.loads((run / "scene.json").read_text())["input"] == "input"  # inside the run: recorded relative to it
+    # the run folder alone is enough to restore the scene (resume / ``nerfpipe stage``), moved elsewhere too
+    moved = tmp_path / "elsewhere" / "run"
+    shutil.move(run, moved)
+    fresh = Pipeline(["load", "check"]).run(None, moved)
     assert [r.status for r in fresh.records] == ["skipped", "skipped"]
     assert torch.equal(fresh["scene"].cameras.world_from_cam, scene.cameras.world_from_cam)
 

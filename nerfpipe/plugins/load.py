@@ -41,11 +41,16 @@ class LoadConfig:
     """Adapter name (``colmap``, ``transforms``, ``npz``...); None detects the format."""
 
 
-def summary(scene: SceneData, input_path: Path, format: "str | None") -> dict:
-    """What ``scene.json`` records: where the scene was read from, and its main figures."""
+def summary(scene: SceneData, input_path: Path, format: "str | None", run_dir: "Path | None" = None) -> dict:
+    """What ``scene.json`` records: where the scene was read from (relative to ``run_dir`` when it lies in the run
+    folder, its ``sfm`` or ``input``, so that a run folder copied or moved elsewhere still reloads it), and its main
+    figures."""
     cams = scene.cameras
+    where = Path(input_path).resolve()
+    if run_dir is not None and where.is_relative_to(Path(run_dir).resolve()):
+        where = where.relative_to(Path(run_dir).resolve())
     return {
-        "input": str(Path(input_path).resolve()),
+        "input": str(where),
         "format": format,
         "adapter": scene.format,
         "num_cameras": len(cams),
@@ -107,7 +112,7 @@ def run(config: LoadConfig, ctx: StageContext) -> "dict[str, object]":
     fmt = config.format or fmt
     scene = _with_triangulated_points(data_adapters.load(path, fmt), ctx)
     check_images(scene)  # adapters read headers only: a truncated image stops the run here, before any work
-    write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt))
+    write_json(ctx.path(SCENE_JSON), summary(scene, path, fmt, ctx.run_dir))
     ctx.log.info("loaded %d cameras (%s) from %s", len(scene.cameras), scene.format, path)
     return {"scene": scene, SCENE_JSON: ctx.path(SCENE_JSON)}
 
