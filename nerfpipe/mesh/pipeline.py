@@ -180,11 +180,12 @@ class MeshConfig:
     close_holes: int = 300
     """Fill holes with at most this many boundary edges, after the cleaning passes (0: leave holes); a mesh
     pymeshlab cannot fill keeps its holes, with a warning. Larger holes stay open: on the real captures the bottom
-    where the support plane went (1,300-2,200 edges); a smaller object's bottom gets a lid. Session 80, the same TSDF meshes with 0 / 300: colmap_mouse's 258 holes
-    (5,417 boundary edges) -> 44 (1,513), the holes of its lilac end filled in ``mesh_views.png``, 98.0 % of the
-    points within 1 % both, free-space violation 0.0213 / 0.0215; the synthetic demo against its true mesh
-    F-score@1 % 0.9890 / 0.9892, Chamfer-L1 0.00569 / 0.00572, normal consistency 0.942 / 0.939, violation
-    0.0176 / 0.0176; session 78, the posed 23-photo cut of colmap_mouse: 282 holes -> 34, 99.0 / 99.1 % within 1 %,
+    where the support plane went (1,300-2,200 edges); a smaller object's bottom gets a lid. Session 80, the same
+    TSDF meshes with 0 / 300: colmap_mouse's 258 holes (5,417 boundary edges) -> 44 (1,513), the holes of its
+    lilac end filled in ``mesh_views.png``, 98.0 % of the points within 1 % both, free-space violation 0.0213 /
+    0.0215; the synthetic demo against its true mesh F-score@1 % 0.9890 / 0.9892, Chamfer-L1 0.00569 / 0.00572,
+    normal consistency 0.942 / 0.939, violation 0.0176 / 0.0176; the synthetic room of 26 views F-score@1 %
+    0.970 / 0.973; session 78, the posed 23-photo cut of colmap_mouse: 282 holes -> 34, 99.0 / 99.1 % within 1 %,
     violation 0.0185 / 0.0191. About a second on 150,000 faces."""
     smooth: "int | None" = None
     """Steps of feature-preserving smoothing after cleaning (:func:`nerfpipe.mesh.clean.smooth`; 0: none). Default: 1
