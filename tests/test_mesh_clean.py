@@ -168,3 +168,25 @@ def test_depth_map_fast_pinhole_path_matches_nerfpipe_rays():
     assert torch.equal(torch.isfinite(fast), torch.isfinite(ref)) and torch.isfinite(fast).float().mean() > 0.2
     hit = torch.isfinite(fast)
     torch.testing.assert_close(fast[hit], ref[hit], atol=1e-4, rtol=0)
+
+
+def test_edge_pieces_part_faces_that_touch_at_a_vertex_only():
+    from nerfpipe.mesh.clean import component_labels, edge_pieces
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [-1, 0, 0], [0, -1, 0.0]])
+    mesh = TriangleMesh(v, np.array([[0, 1, 2], [1, 3, 2], [0, 4, 5]]))  # two faces share an edge, the third vertex 0
+    count, label = edge_pieces(mesh)
+    assert count == 2 and label[0] == label[1] != label[2]
+    assert len(np.unique(component_labels(mesh)[1][mesh.faces[:, 0]])) == 1  # by shared vertices: one piece
+
+
+def test_a_small_flap_hanging_on_a_vertex_goes_with_the_floaters():
+    ball = sphere(subdivisions=3)
+    tip = int(np.argmax(ball.vertices[:, 2]))  # the flap hangs on the ball's top vertex: one piece by vertices
+    top = ball.vertices[tip]
+    flap_v = np.concatenate([ball.vertices, top + np.array([[0.01, 0.0, 0.005], [0.0, 0.01, 0.005]])])
+    faces = np.concatenate([ball.faces, [[tip, len(ball.vertices), len(ball.vertices) + 1]]])
+    mesh = TriangleMesh(flap_v, faces, np.concatenate([ball.vertex_colors, ball.vertex_colors[:2]]))
+    out = remove_small_components(mesh, min_diameter_fraction=0.01)
+    assert out.num_faces == ball.num_faces and out.to_trimesh().is_watertight
+    assert remove_small_components(mesh, min_diameter_fraction=0.0).num_faces == mesh.num_faces  # off: kept

@@ -1,7 +1,8 @@
 """Cleaning and simplification of extracted meshes (pymeshlab, scipy), and face visibility (Open3D).
 
 * :func:`remove_small_components` drops floaters: connected pieces (:func:`component_labels`) whose
-  bounding-box diagonal is a small fraction of the whole mesh's, or that lie far from the main piece;
+  bounding-box diagonal is a small fraction of the whole mesh's (:func:`edge_pieces` for flaps hanging on a
+  vertex), or that lie far from the main piece;
 * :func:`faces_near_box_sides` marks the faces along the sides of the meshed box (fog walls);
 * :func:`visible_faces` marks the faces some training camera sees (a z-buffer test against
   a ray-cast depth map per camera), so faces no camera sees (inner blobs) can be dropped;
@@ -49,6 +50,34 @@ def component_labels(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_ver
     return int(count), label
 
 
+def edge_pieces(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_faces']]":
+    """Pieces of faces joined through shared edges (a piece that touches the rest at a vertex only is its own, unlike
+    :func:`component_labels`): how many there are and each face's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.faces.astype(np.int64)
+    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
+    key = edges[:, 0] * max(mesh.num_vertices, 1) + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    face, key = np.repeat(np.arange(len(f)), 3)[order], key[order]
+    same = key[1:] == key[:-1]
+    a, b = face[:-1][same], face[1:][same]
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(f), len(f)))
+    count, label = connected_components(graph, directed=False)
+    return int(count), label
+
+
+def _small_edge_pieces(mesh: TriangleMesh, min_diameter: float) -> Bool[np.ndarray, "num_faces"]:
+    """Faces of the :func:`edge_pieces` whose bounding-box diagonal is below ``min_diameter``."""
+    count, label = edge_pieces(mesh)
+    corners = mesh.vertices[mesh.faces]
+    lo, hi = np.full((count, 3), np.inf), np.full((count, 3), -np.inf)
+    np.minimum.at(lo, label, corners.min(axis=1))
+    np.maximum.at(hi, label, corners.max(axis=1))
+    return (np.linalg.norm(hi - lo, axis=1) < min_diameter)[label]
+
+
 def remove_small_components(
     mesh: TriangleMesh, min_diameter_fraction: float = 0.05, max_gap: "float | None" = None,
     anchors: "Float[np.ndarray, 'num_anchors 3'] | None" = None, unsupported: "tuple[float, float, float] | None" = None,
@@ -64,7 +93,8 @@ def remove_small_components(
     ``distance`` of a vertex) go too: a sheet of fog beside the object, which no SfM point lies on. With both and
     ``far_min_anchors`` > 0, a piece farther than ``max_gap`` stays where it holds that share of the anchors or more
     (and is not unsupported): a part of the object that the mesh does not join to the rest (a dome above a facade
-    whose drum no photograph resolved), not a floater.
+    whose drum no photograph resolved), not a floater. A small piece that touches a kept one at a vertex only (a
+    flap of the fused surface) goes by the size rule too (:func:`edge_pieces`).
     """
     from scipy.spatial import cKDTree
 
@@ -88,7 +118,11 @@ def remove_small_components(
         keep &= near
     if unsupported is not None and has_anchors:
         keep &= ~_unsupported(mesh, label, count, main, anchors, *unsupported)
-    out = mesh.submesh(keep[label[mesh.faces[:, 0]]])
+    kept = keep[label[mesh.faces[:, 0]]]
+    if min_diameter_fraction > 0 and kept.any():
+        small = _small_edge_pieces(mesh, min_diameter_fraction * mesh.diagonal())
+        kept &= ~small if (kept & ~small).any() else True
+    out = mesh.submesh(kept)
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
     return out
 
