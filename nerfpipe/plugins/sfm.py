@@ -9,7 +9,9 @@ that the ``load`` stage reads with the COLMAP adapter. Scratch files (database, 
 photos, distorted models) stay in ``RUN_DIR/sfm.work``.
 
 The stage applies when the input is a folder (or its ``images/`` subfolder) of photos that no
-data adapter recognises. It also applies to a real capture that an adapter reads with poses but no sparse
+data adapter recognises, or a video file (:data:`nerfpipe.data.video.VIDEO_SUFFIXES`): then the sharpest frame of each
+of ``video_frames`` equal stretches of it (:func:`nerfpipe.data.video.write_frames`) is written to ``RUN_DIR/frames``
+first, and those frames are the photos. It also applies to a real capture that an adapter reads with poses but no sparse
 points (an instant-ngp or nerfstudio ``transforms.json`` without a point file;
 :func:`nerfpipe.plugins.triangulate.wants_points`): then it only triangulates points with the poses fixed
 (:func:`nerfpipe.plugins.triangulate.triangulate`) and writes them as ``RUN_DIR/sfm/points`` (a COLMAP model
@@ -26,13 +28,16 @@ from pathlib import Path
 from typing import Literal
 
 from nerfpipe.data.image_file import HEIF_SUFFIXES, PHOTO_SUFFIXES, image_header, open_image
+from nerfpipe.data.video import is_video, write_frames
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
 from nerfpipe.plugins import unfold
-from nerfpipe.util.errors import NerfpipeError, require
+from nerfpipe.util.errors import NerfpipeError, refuse_unless, require
 from nerfpipe.util.paths import resolve_inside
 
 SFM_DIR = "sfm"
+FRAMES_DIR = "frames"
+"""The frames taken from a video input (the photos of its structure from motion)."""
 WORK_DIR = "sfm.work"
 POINTS_DIR = "points"
 """Inside ``SFM_DIR``: the triangulated points of a posed input (a COLMAP model in the input's frame)."""
@@ -44,6 +49,9 @@ class SfmConfig:
 
     max_image_size: int = 1024
     """Longest image side used for SfM and written to the result; larger photos are downscaled (0: keep)."""
+    video_frames: int = 50
+    """Frames taken from a video input: the sharpest (least blurred) of each of this many equal stretches of it.
+    Above ``exhaustive_max_photos`` each frame is matched with its most similar ones only."""
     camera_mode: Literal["auto", "single", "per_image"] = "auto"
     """``auto``: one camera (intrinsics estimated once) per group of photos of the same size and EXIF camera
     model, as the photos of one phone or camera are; ``per_image``: one per photo. Per photo, a few photos fit
@@ -138,6 +146,10 @@ class SfmConfig:
     verbose: bool = False
     """Show COLMAP's own INFO log (otherwise only warnings and the progress bars)."""
 
+    def __post_init__(self) -> None:
+        """Impossible values stop here, before any photo is read."""
+        refuse_unless([("video_frames", self.video_frames >= 3, "at least 3", self.video_frames)])
+
 
 def photo_folder(path: "Path | None") -> "Path | None":
     """``path/images`` or ``path`` when it holds photos, else None."""
@@ -150,10 +162,12 @@ def photo_folder(path: "Path | None") -> "Path | None":
 
 
 def applies(ctx: StageContext) -> bool:
-    """Photos that no adapter can read, or a posed real capture without points (:func:`posed_without_points`);
+    """Photos that no adapter can read, a video, or a posed real capture without points (:func:`posed_without_points`);
     never an in-memory reconstruction."""
     if "reconstruction" in ctx.cache or ctx.source is None:
         return False
+    if is_video(ctx.source):
+        return True
     if not _adapter_reads(ctx.source):
         return photo_folder(ctx.source) is not None
     return posed_without_points(ctx) is not None
@@ -571,7 +585,8 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
         if posed is None:
             raise NerfpipeError("the input has poses and needs no structure from motion (sfm.triangulate is off, or it has points)", ctx.source)
         return run_triangulation(config, ctx, posed)
-    photos = _photos(photo_folder(ctx.source))
+    folder = _video_frames(config, ctx) if is_video(ctx.source) else photo_folder(ctx.source)
+    photos = _photos(folder)
     work = ctx.path(WORK_DIR)
     shutil.rmtree(work, ignore_errors=True)
     try:
@@ -582,7 +597,7 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
         rec, images, chosen = choose_reconstruction(photos, work, config, (rec, images), ctx.time_left(), ctx.log, unfolded)
     except NerfpipeError as exc:  # name the user's photos, not the scratch folder (a photo at fault keeps its name)
         if exc.path is not None and (exc.path == work or work in exc.path.parents):
-            raise NerfpipeError(exc.problem, photo_folder(ctx.source)) from exc
+            raise NerfpipeError(exc.problem, folder) from exc
         raise
     if rec.num_reg_images() < config.min_registered:
         raise NerfpipeError(f"sfm registered only {rec.num_reg_images()} of {len(photos)} photos", ctx.source)
@@ -596,6 +611,17 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
     ctx.log.info("sfm: %d of %d photos registered, %d points", record["num_registered"], len(photos), rec.num_points3D())
     result = pycolmap.Reconstruction(str(_model_dir(ctx.path(SFM_DIR))))
     return {"sfm_reconstruction": result, "sfm_summary": record}
+
+
+def _video_frames(config: SfmConfig, ctx: StageContext) -> Path:
+    """``RUN_DIR/frames``: the video input's sharpest frames (:attr:`SfmConfig.video_frames`), written once (an
+    interrupted stage resumes with them)."""
+    frames = ctx.path(FRAMES_DIR)
+    if not frames.is_dir():
+        with atomic_path(frames) as tmp:
+            written = write_frames(ctx.source, tmp, config.video_frames)
+        ctx.log.info("sfm: %d frames taken from %s", len(written), Path(ctx.source).name)
+    return frames
 
 
 def rotation_agreement(rotations: "dict[str, object]", reference: "dict[str, object]", tolerance: float = 5.0) -> "dict[str, float | int]":
