@@ -58,6 +58,20 @@ def _raw_photos(root):
     return root, root
 
 
+def _photos_without_poses(root):
+    import imageio.v3 as iio
+
+    (root / "images").mkdir()
+    for i in range(3):
+        iio.imwrite(root / "images" / f"IMG_{i}.jpg", np.zeros((8, 8, 3), np.uint8))
+    return root, root
+
+
+def _video(root):
+    (root / "walk.mp4").write_bytes(b"\x00" * 64)  # not decoded: the suffix says what it is
+    return root / "walk.mp4", root / "walk.mp4"
+
+
 CASES = {
     "empty-model": _empty_model,
     "unsupported-camera": _unsupported_model,
@@ -66,6 +80,8 @@ CASES = {
     "nonexistent": _nonexistent,
     "unknown-format": _unknown_format,
     "raw-photos": _raw_photos,
+    "photos-without-poses": _photos_without_poses,
+    "video": _video,
 }
 
 
@@ -83,6 +99,8 @@ def test_one_line_error(tmp_path, capsys, case, command):
     assert "Traceback" not in err
     if case == "raw-photos":  # said what they are and what to do
         assert "3 photos in a format nerfpipe does not read (.CR2): convert them to JPEG" in lines[0]
+    if case in ("photos-without-poses", "video"):  # the command that takes them
+        assert "without camera poses: `nerfpipe run" in lines[0]
 
 
 def test_a_warning_is_one_line(tmp_path, capsys):

@@ -37,6 +37,16 @@ OTHER_PHOTO_SUFFIXES = (".avif", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf",
 (:func:`unread_photos`), not as an unknown dataset."""
 
 
+def photo_folder(path: "str | Path | None") -> "Path | None":
+    """``path/images`` or ``path`` when it holds photographs of :data:`PHOTO_SUFFIXES`, else None."""
+    if path is None or not Path(path).is_dir():
+        return None
+    for folder in (Path(path) / "images", Path(path)):
+        if folder.is_dir() and any(p.suffix.lower() in PHOTO_SUFFIXES for p in folder.iterdir()):
+            return folder
+    return None
+
+
 def unread_photos(path: "str | Path") -> "list[Path]":
     """The photographs of :data:`OTHER_PHOTO_SUFFIXES` in ``path`` (or ``path/images``) where it holds none of
     :data:`PHOTO_SUFFIXES`; empty otherwise."""

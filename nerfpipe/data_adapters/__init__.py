@@ -6,7 +6,8 @@ register there too). :func:`load` picks the adapter whose ``detect`` scores a pa
 
 from pathlib import Path
 
-from nerfpipe.data.image_file import unread_photos
+from nerfpipe.data.image_file import photo_folder, unread_photos
+from nerfpipe.data.video import is_video
 from nerfpipe.data.scene import SceneData
 from nerfpipe.util.errors import NerfpipeError
 from nerfpipe.util.registry import ADAPTER_GROUP, AdapterSpec, discover
@@ -31,6 +32,9 @@ def detect(path: "str | Path") -> AdapterSpec:
             kinds = ", ".join(sorted({p.suffix for p in unread}))
             raise NerfpipeError(f"holds {len(unread)} photos in a format nerfpipe does not read ({kinds}): convert them to JPEG "
                                 f"or PNG (e.g. ImageMagick's `mogrify -format jpg *{unread[0].suffix}`)", path)
+        if is_video(path) or photo_folder(path) is not None:
+            raise NerfpipeError(f"{'a video' if is_video(path) else 'photos'} without camera poses: `nerfpipe run {path}` "
+                                "reconstructs them first (its sfm stage), then reads the result in RUN/sfm", path)
         known = ", ".join(sorted(adapters()))
         raise NerfpipeError(f"not a dataset nerfpipe can read (known formats: {known})", path)
     return scored[0][2]

@@ -27,7 +27,7 @@ from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 from typing import Literal
 
-from nerfpipe.data.image_file import HEIF_SUFFIXES, PHOTO_SUFFIXES, image_header, open_image
+from nerfpipe.data.image_file import HEIF_SUFFIXES, PHOTO_SUFFIXES, image_header, open_image, photo_folder
 from nerfpipe.data.video import is_video, write_frames
 from nerfpipe.pipeline.report_items import Shown
 from nerfpipe.pipeline.stages import StageContext, StageSpec, atomic_path
@@ -149,16 +149,6 @@ class SfmConfig:
     def __post_init__(self) -> None:
         """Impossible values stop here, before any photo is read."""
         refuse_unless([("video_frames", self.video_frames >= 3, "at least 3", self.video_frames)])
-
-
-def photo_folder(path: "Path | None") -> "Path | None":
-    """``path/images`` or ``path`` when it holds photos, else None."""
-    if path is None or not Path(path).is_dir():
-        return None
-    for folder in (Path(path) / "images", Path(path)):
-        if folder.is_dir() and any(p.suffix.lower() in PHOTO_SUFFIXES for p in folder.iterdir()):
-            return folder
-    return None
 
 
 def applies(ctx: StageContext) -> bool:
