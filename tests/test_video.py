@@ -51,6 +51,8 @@ def test_stretches_split_the_frames_evenly():
 
 
 def test_the_sharpest_frame_of_each_stretch_is_taken(blurry_video, tmp_path):
+    import imageio.v3 as iio
+
     video, sharp = blurry_video
     assert is_video(video) and not is_video(video.parent)
     taken = sharpest_frames(video, 6)
@@ -59,6 +61,8 @@ def test_the_sharpest_frame_of_each_stretch_is_taken(blurry_video, tmp_path):
     assert len(sharpest_frames(video, 100)) == 24  # more stretches than frames: every frame
     paths = write_frames(video, tmp_path / "frames", 6)
     assert [p.name for p in paths] == [f"frame_{i:05d}.jpg" for i in sharp] and all(p.is_file() for p in paths)
+    small = write_frames(video, tmp_path / "small", 6, max_size=64)
+    assert [p.name for p in small] == [p.name for p in paths] and iio.imread(small[0]).shape == (48, 64, 3)
 
 
 def test_a_rotated_phone_video_is_turned_upright(blurry_video, tmp_path):

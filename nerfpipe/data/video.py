@@ -117,17 +117,22 @@ def sharpest_frames(path: "str | Path", count: int) -> "list[tuple[int, float, U
     return [kept[s] for s in sorted(kept)]
 
 
-def write_frames(path: "str | Path", out: "str | Path", count: int, quality: int = 95) -> "list[Path]":
+def write_frames(path: "str | Path", out: "str | Path", count: int, max_size: int = 0, quality: int = 95) -> "list[Path]":
     """The sharpest frame of each of ``count`` stretches of the video ``path`` as JPEG files in the folder ``out``
-    (``frame_NNNNN.jpg`` by frame index; the folder is made). Returns their paths in order."""
-    import imageio.v3 as iio
+    (``frame_NNNNN.jpg`` by frame index; the folder is made), downscaled to ``max_size`` pixels on the longer side
+    where larger (0: as decoded). Returns their paths in order."""
+    from PIL import Image
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for index, _, pixels in sharpest_frames(path, count):
+        image = Image.fromarray(pixels)
+        if 0 < max_size < max(image.size):
+            scale = max_size / max(image.size)
+            image = image.resize((max(1, round(image.width * scale)), max(1, round(image.height * scale))), Image.LANCZOS)
         file = out / f"frame_{index:05d}.jpg"
-        iio.imwrite(file, pixels, extension=".jpg", quality=quality)
+        image.save(file, quality=quality)
         paths.append(file)
     return paths
 

@@ -604,12 +604,13 @@ def run(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
 
 
 def _video_frames(config: SfmConfig, ctx: StageContext) -> Path:
-    """``RUN_DIR/frames``: the video input's sharpest frames (:attr:`SfmConfig.video_frames`), written once (an
-    interrupted stage resumes with them)."""
+    """``RUN_DIR/frames``: the video input's sharpest frames (:attr:`SfmConfig.video_frames`) at most
+    ``max_image_size`` on the longer side (what the reconstruction uses), written once (an interrupted stage
+    resumes with them)."""
     frames = ctx.path(FRAMES_DIR)
     if not frames.is_dir():
         with atomic_path(frames) as tmp:
-            written = write_frames(ctx.source, tmp, config.video_frames)
+            written = write_frames(ctx.source, tmp, config.video_frames, config.max_image_size)
         ctx.log.info("sfm: %d frames taken from %s", len(written), Path(ctx.source).name)
     return frames
 
