@@ -116,11 +116,11 @@ def run(
     resume: bool = True,
     device: str = "auto",
 ) -> int:
-    """Run the pipeline on a dataset or a folder of photos, resuming a previous run (every stage's options
+    """Run the pipeline on a dataset, a folder of photos or a video, resuming a previous run (every stage's options
     as --STAGE.OPTION: nerfpipe run --help).
 
     Args:
-        path: dataset (COLMAP folder, transforms.json, .npz) or a folder of photos (SfM runs first).
+        path: dataset (COLMAP folder, transforms.json, .npz), a folder of photos or a video (SfM runs first, on its sharpest frames).
         stages: comma-separated chain, e.g. ``load,check,export`` (none: sfm,load,check,train,render,mesh,export,report).
         pipeline: TOML file with ``stages = [...]`` and one ``[stage]`` table of options each (the defaults of the --STAGE.* options).
         out: run folder (none: ``runs/<input name>``).

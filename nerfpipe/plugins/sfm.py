@@ -1,4 +1,4 @@
-"""Stage ``sfm``: structure from motion with pycolmap on CPU, for a folder of photos without a model,
+"""Stage ``sfm``: structure from motion with pycolmap on CPU, for a folder of photos (or a video) without a model,
 and triangulation with the known poses for posed photographs without sparse points.
 
 Steps, each shown as progress: downscale the photos (longest side ``max_image_size``, EXIF
@@ -1159,7 +1159,7 @@ def restore(config: SfmConfig, ctx: StageContext) -> "dict[str, object]":
 
 STAGE = StageSpec(
     name="sfm",
-    description="pycolmap structure from motion on CPU (only for a folder of photos without a model)",
+    description="pycolmap structure from motion on CPU (only for a folder of photos or a video without a model)",
     config=SfmConfig,
     run=run,
     produces=(SFM_DIR,),
