@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.image_file import _first_line
 from nerfpipe.util.errors import NerfpipeError
 from nerfpipe.util.typing import UInt8
 
@@ -32,12 +33,6 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 
 SHARPNESS_SIZE = 480
 """Longer side the frames are reduced to (by striding) before their sharpness is measured."""
-
-
-def _cause(exc: BaseException) -> str:
-    """The exception's type and first line, for a one-line error."""
-    lines = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
 
 
 def is_video(path: "str | Path | None") -> bool:
@@ -118,7 +113,7 @@ def sharpest_frames(path: "str | Path", count: int, max_size: int = 0) -> "list[
                 if stretch not in kept or score > kept[stretch][1]:
                     kept[stretch] = (index, score, frame.copy())
         except Exception as exc:  # imageio-ffmpeg raises OSError / RuntimeError / StopIteration on broken files
-            failure = _cause(exc)
+            failure = f"{type(exc).__name__}: {_first_line(exc)}"
         finally:
             frames.close()
     if failure is not None:
@@ -130,20 +125,16 @@ def sharpest_frames(path: "str | Path", count: int, max_size: int = 0) -> "list[
 
 def write_frames(path: "str | Path", out: "str | Path", count: int, max_size: int = 0, quality: int = 95) -> "list[Path]":
     """The sharpest frame of each of ``count`` stretches of the video ``path`` as JPEG files in the folder ``out``
-    (``frame_NNNNN.jpg`` by frame index; the folder is made), downscaled to ``max_size`` pixels on the longer side
-    where larger (0: as decoded). Returns their paths in order."""
+    (``frame_NNNNN.jpg`` by frame index; the folder is made), at most ``max_size`` pixels on the longer side
+    (:func:`sharpest_frames`; 0: as decoded). Returns their paths in order."""
     from PIL import Image
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for index, _, pixels in sharpest_frames(path, count, max_size):
-        image = Image.fromarray(pixels)
-        if 0 < max_size < max(image.size):
-            scale = max_size / max(image.size)
-            image = image.resize((max(1, round(image.width * scale)), max(1, round(image.height * scale))), Image.LANCZOS)
         file = out / f"frame_{index:05d}.jpg"
-        image.save(file, quality=quality)
+        Image.fromarray(pixels).save(file, quality=quality)
         paths.append(file)
     return paths
 

@@ -121,7 +121,8 @@ def remove_small_components(
     kept = keep[label[mesh.faces[:, 0]]]
     if min_diameter_fraction > 0 and kept.any():
         small = _small_edge_pieces(mesh, min_diameter_fraction * mesh.diagonal())
-        kept &= ~small if (kept & ~small).any() else True
+        if (kept & ~small).any():  # never the whole mesh
+            kept &= ~small
     out = mesh.submesh(kept)
     out.info["floater_faces_removed"] = out.info.get("floater_faces_removed", 0) + mesh.num_faces - out.num_faces
     return out

@@ -46,9 +46,9 @@ def summary(scene: SceneData, input_path: Path, format: "str | None", run_dir: "
     folder, its ``sfm`` or ``input``, so that a run folder copied or moved elsewhere still reloads it), and its main
     figures."""
     cams = scene.cameras
-    where = Path(input_path).resolve()
-    if run_dir is not None and where.is_relative_to(Path(run_dir).resolve()):
-        where = where.relative_to(Path(run_dir).resolve())
+    where, run = Path(input_path).resolve(), None if run_dir is None else Path(run_dir).resolve()
+    if run is not None and where.is_relative_to(run):
+        where = where.relative_to(run)
     return {
         "input": str(where),
         "format": format,
