@@ -7,8 +7,8 @@ register there too). :func:`load` picks the adapter whose ``detect`` scores a pa
 from pathlib import Path
 
 from nerfpipe.data.image_file import photo_folder, unread_photos
-from nerfpipe.data.video import is_video
 from nerfpipe.data.scene import SceneData
+from nerfpipe.data.video import is_video
 from nerfpipe.util.errors import NerfpipeError
 from nerfpipe.util.registry import ADAPTER_GROUP, AdapterSpec, discover
 

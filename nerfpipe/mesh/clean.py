@@ -68,14 +68,18 @@ def edge_pieces(mesh: TriangleMesh) -> "tuple[int, Int[np.ndarray, 'num_faces']]
     return int(count), label
 
 
+def _label_diagonals(points: Float[np.ndarray, "num_points 3"], label: Int[np.ndarray, "num_points"], count: int) -> Float[np.ndarray, "count"]:
+    """Bounding-box diagonal of the points of each of ``count`` labels."""
+    lo, hi = np.full((count, 3), np.inf), np.full((count, 3), -np.inf)
+    np.minimum.at(lo, label, points)
+    np.maximum.at(hi, label, points)
+    return np.linalg.norm(hi - lo, axis=1)
+
+
 def _small_edge_pieces(mesh: TriangleMesh, min_diameter: float) -> Bool[np.ndarray, "num_faces"]:
     """Faces of the :func:`edge_pieces` whose bounding-box diagonal is below ``min_diameter``."""
     count, label = edge_pieces(mesh)
-    corners = mesh.vertices[mesh.faces]
-    lo, hi = np.full((count, 3), np.inf), np.full((count, 3), -np.inf)
-    np.minimum.at(lo, label, corners.min(axis=1))
-    np.maximum.at(hi, label, corners.max(axis=1))
-    return (np.linalg.norm(hi - lo, axis=1) < min_diameter)[label]
+    return (_label_diagonals(mesh.vertices[mesh.faces].reshape(-1, 3), np.repeat(label, 3), count) < min_diameter)[label]
 
 
 def remove_small_components(
@@ -101,10 +105,7 @@ def remove_small_components(
     if mesh.num_faces == 0:
         return mesh
     count, label = component_labels(mesh)
-    lo, hi = np.full((count, 3), np.inf), np.full((count, 3), -np.inf)
-    np.minimum.at(lo, label, mesh.vertices)
-    np.maximum.at(hi, label, mesh.vertices)
-    keep = np.linalg.norm(hi - lo, axis=1) >= min_diameter_fraction * mesh.diagonal()
+    keep = _label_diagonals(mesh.vertices, label, count) >= min_diameter_fraction * mesh.diagonal()
     has_anchors = anchors is not None and len(anchors) > 0
     if max_gap is not None or (unsupported is not None and has_anchors):
         main = _main_component(mesh, label, count, anchors)
