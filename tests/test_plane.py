@@ -69,6 +69,72 @@ def test_the_texture_keeps_the_background_where_rays_miss_and_learns_where_they_
     assert float(loss.detach()) < 0.1 * first
 
 
+def _camera_above(eye, target, size: int = 64, fov_deg: float = 60.0):
+    from nerfpipe.data.cameras import Cameras
+    from nerfpipe.data.orbit import look_at
+
+    f = 0.5 * size / math.tan(math.radians(fov_deg) / 2)
+    pose = look_at(torch.tensor(eye), torch.tensor(target), torch.tensor([0.0, 1.0, 0.0]))
+    return Cameras.create(pose[None], f, f, size / 2, size / 2, size, size)
+
+
+def test_points_at_inverts_the_contracted_coordinates():
+    tex = PlaneTexture(PlaneTextureConfig(levels=(4,)), FLOOR, torch.tensor([0.3, -0.2, 0.7]), radius=0.8)
+    c = (torch.rand(500, 2, generator=torch.Generator().manual_seed(0)) * 2 - 1) * 0.99
+    c = c[(2 * c).norm(dim=-1) < 1.99]  # inside the rim (infinitely far)
+    points = tex.points_at(c)
+    assert torch.allclose(points[:, 2], torch.tensor(-0.5), atol=1e-5)  # on the plane
+    assert torch.allclose(tex.coordinates(points), c, atol=1e-4)
+
+
+def test_the_texture_is_only_where_training_cameras_see_the_plane_steeply_enough():
+    """A camera looking straight down at the texture's middle: its footprint is covered, the rest of the plane is
+    not (the texture transparent there whatever it learned); ``min_views`` 2 needs a second camera; a camera seeing
+    the plane at a grazing angle does not count; ``min_views`` 0 covers everything."""
+    tex = PlaneTexture(PlaneTextureConfig(levels=(4, 8), initial_opacity=0.9, min_views=1, min_incidence=0.2), FLOOR, torch.zeros(3), radius=1.0)
+    down = _camera_above([0.0, 0.0, 1.5], [0.0, 0.0, -0.5])  # 2 above the floor, 60 degrees: a disc of about 1.15
+    inside, outside = torch.tensor([[0.0, 0.0, -0.5], [0.5, 0.5, -0.5]]), torch.tensor([[3.0, 0.0, -0.5], [-1.6, -1.6, -0.5], [0.0, 40.0, -0.5]])
+    everywhere = tex.rgba(torch.cat([inside, outside]))[:, 3]  # before any cover: the texture everywhere
+    assert (everywhere > 0.8).all()
+    tex.cover(down)
+    assert torch.equal(tex.rgba(inside)[:, 3], everywhere[:2]) and torch.equal(tex.rgba(outside)[:, 3], torch.zeros(3))
+    share = float(tex.coverage.mean())  # about the footprint's share of the contracted square [-2, 2]^2
+    assert 0.5 * (2 * 1.15) ** 2 / 16 < share < 1.5 * (2 * 1.15) ** 2 / 16
+    tex.cfg.min_views = 2
+    tex.cover(down)
+    assert tex.coverage.max() == pytest.approx(0.5)  # one camera is half of two
+    below = _camera_above([0.0, 0.0, -1.5], [0.0, 0.0, -3.0])  # under the floor, looking away: sees nothing of its top
+    grazing = _camera_above([3.0, 0.0, -0.45], [0.0, 0.0, -0.5])  # 0.05 above it, 3 away: at most 0.05 / 1.9 steep
+    both = _camera_above([0.0, 0.2, 1.5], [0.0, 0.0, -0.5])
+    from nerfpipe.data.cameras import Cameras
+
+    def cams(*c):
+        return Cameras(**{f: torch.cat([getattr(x, f) for x in c]) for f in ("world_from_cam", "fx", "fy", "cx", "cy", "width", "height", "distortion", "dist_params")})
+
+    tex.cover(cams(down, below, grazing))
+    assert tex.coverage.max() == pytest.approx(0.5)
+    tex.cover(cams(down, both))
+    assert torch.equal(tex.rgba(inside)[:, 3], everywhere[:2]) and float((tex.coverage == 1).float().mean()) < share  # where both see it
+    tex.cfg.min_views = 0
+    tex.cover(down)
+    assert torch.equal(tex.coverage, torch.ones_like(tex.coverage))
+
+
+def test_the_fast_model_covers_its_texture_from_the_training_cameras_and_old_checkpoints_keep_it_everywhere():
+    cam = _camera_above([0.0, 0.0, 2.0], [0.0, 0.0, -1.0])
+    model = FastConfig(preset="small").setup(_info(cameras=cam))
+    assert 0.0 < float(model.plane.coverage.mean()) < 1.0
+    state = model.state_dict()
+    assert torch.equal(state["plane.coverage"], model.plane.coverage)
+    again = FastConfig(preset="small").setup(_info())  # rebuilt without cameras: the checkpoint's coverage
+    assert torch.equal(again.plane.coverage, torch.ones_like(again.plane.coverage))
+    again.load_state_dict(state)
+    assert torch.equal(again.plane.coverage, model.plane.coverage)
+    old = FastConfig(preset="small").setup(_info(cameras=cam))  # a checkpoint from before the coverage: everywhere
+    old.load_state_dict({k: v for k, v in state.items() if k != "plane.coverage"})
+    assert torch.equal(old.plane.coverage, torch.ones_like(old.plane.coverage))
+
+
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     from nerfpipe.data.synthetic import SynthConfig, generate

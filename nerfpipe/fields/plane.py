@@ -45,6 +45,17 @@ class PlaneTextureConfig:
     400 px, one ray per pixel) colmap_mouse after 600 / 900 steps: 0.018 (sigmoid(-4), until then) 24.44 / 24.51 dB,
     0.06 24.49 / 24.54, **0.12 24.54 / 24.58**, 0.25 24.49 / 24.57, 0.5 24.45 / 24.55; the room scene after 300 / 600
     27.69 / 30.96 → 27.99 / 31.01; the 23-photo posed cut 23.59 / 23.03 → 23.74 / 22.99 (3 views)."""
+    min_views: int = 2
+    """Training cameras that must see a point of the plane for the texture to be there (:meth:`PlaneTexture.cover`;
+    0: everywhere). Where no photograph shows the table, its texels are never trained, yet the shared MLP and the
+    coarse levels give them a colour and an opacity that drift as training goes on; the field behind the box, coarse
+    and smooth, extends what it holds there instead."""
+    min_incidence: float = 0.0
+    """A camera counts for :attr:`min_views` where it sees the plane at least this steeply (the cosine between its ray
+    and the plane's normal): seen at a grazing angle, a pixel spans a long strip of the table, and the texture learns
+    streaks along the camera's rays."""
+    coverage_size: int = 128
+    """Cells per side of the coverage grid over the contracted plane (as the textures' ``[-2, 2]^2``)."""
 
 
 def plane_hits(
@@ -88,6 +99,9 @@ class PlaneTexture(nn.Module):
         self.register_buffer("basis", torch.stack([e1, e2]))
         self.register_buffer("origin", origin)
         self.radius = float(radius)
+        self.register_buffer("coverage", torch.ones(1, 1, cfg.coverage_size, cfg.coverage_size))
+        """Whether the training cameras see each point of the plane (:meth:`cover`), ``[1, 1, n, n]`` over the
+        contracted coordinates, 0 to 1; the texture's opacity is multiplied by it (bilinear)."""
         self.textures = nn.ParameterList(
             [nn.Parameter(1e-4 * (2 * torch.rand(1, cfg.feature_channels, n, n) - 1)) for n in cfg.levels]
         )
@@ -101,13 +115,52 @@ class PlaneTexture(nn.Module):
         u = (points - self.origin) @ self.basis.T / self.radius
         return 0.5 * contract_2d(u)
 
+    def points_at(self, coordinates: Float[Tensor, "num_points 2"]) -> Float[Tensor, "num_points 3"]:
+        """Points on the plane at contracted ``coordinates`` in ``[-1, 1]^2`` (the inverse of :meth:`coordinates`;
+        the rim, infinitely far, is brought in to 1,000 radii)."""
+        s = (2.0 * coordinates).norm(dim=-1, keepdim=True)
+        r = torch.where(s <= 1.0, s, 1.0 / (2.0 - s.clamp(max=2.0 - 1e-3)))  # |u| of contract_2d's input
+        u = 2.0 * coordinates * r / s.clamp(min=1e-12)
+        return self.origin + self.radius * (u @ self.basis)
+
+    @torch.no_grad()
+    def cover(self, cameras, chunk: int = 16) -> None:
+        """Set :attr:`coverage` from ``cameras`` (``project(points) -> (pixels, depth)`` with ``width`` and ``height``,
+        e.g. the training :class:`~nerfpipe.data.cameras.Cameras`): the share of ``cfg.min_views`` of them that see the
+        plane's point from its side, in front of them and inside their image, at least as steeply as
+        ``cfg.min_incidence`` (at most 1; read bilinearly, so it fades over one cell); occlusion is not checked.
+        ``cfg.min_views`` 0: 1 everywhere."""
+        n = self.cfg.coverage_size
+        if self.cfg.min_views <= 0 or len(cameras) == 0:
+            self.coverage.fill_(1.0)
+            return
+        axis = torch.linspace(-1.0, 1.0, n, device=self.origin.device)
+        ys, xs = torch.meshgrid(axis, axis, indexing="ij")  # grid_sample's (x, y) order, align_corners=True
+        points = self.points_at(torch.stack([xs, ys], dim=-1).reshape(-1, 2))
+        cameras = cameras.to(self.origin.device)
+        above = (cameras.world_from_cam[:, :3, 3] @ self.plane[:3] + self.plane[3]) > 0
+        count = torch.zeros(len(points), device=points.device)
+        for start in range(0, len(cameras), chunk):
+            cams = cameras[start : start + chunk]
+            pix, depth = cams[:, None].expand(len(cams), len(points)).project(points[None].expand(len(cams), -1, -1))
+            w, h = cams.width.reshape(-1, 1).to(pix), cams.height.reshape(-1, 1).to(pix)
+            seen = (depth > 0) & (pix[..., 0] >= 0) & (pix[..., 0] <= w) & (pix[..., 1] >= 0) & (pix[..., 1] <= h)
+            centres = cams.world_from_cam[:, :3, 3]
+            to_cam = centres[:, None] - points[None]
+            cosine = (to_cam @ self.plane[:3]) / to_cam.norm(dim=-1).clamp(min=1e-12)
+            seen &= cosine >= self.cfg.min_incidence
+            count += (seen & above[start : start + chunk, None]).sum(0)
+        self.coverage.copy_((count.view(1, 1, n, n) / self.cfg.min_views).clamp(max=1.0))
+
     def rgba(self, points: Float[Tensor, "num_points 3"], codes: "Float[Tensor, 'num_points code_dim'] | None" = None) -> Float[Tensor, "num_points 4"]:
         """Colour and opacity at ``points`` on the plane (``codes``: per-point appearance codes when built with ``code_dim``)."""
         grid = self.coordinates(points)[None, :, None, :]  # [1, n, 1, 2] for grid_sample
         feats = [nn.functional.grid_sample(t, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, :, 0].T for t in self.textures]
         if self.code_dim:
             feats.append(codes)
-        return torch.sigmoid(self.mlp(torch.cat(feats, dim=-1)))  # colour and opacity
+        out = torch.sigmoid(self.mlp(torch.cat(feats, dim=-1)))  # colour and opacity
+        seen = nn.functional.grid_sample(self.coverage, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, 0, :, 0]
+        return torch.cat([out[:, :3], out[:, 3:] * seen[:, None]], dim=-1)
 
     def layer(
         self, origins: Float[Tensor, "num_rays 3"], directions: Float[Tensor, "num_rays 3"],

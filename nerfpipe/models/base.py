@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 import torch
 from torch import nn
 
+from nerfpipe.data.cameras import Cameras
 from nerfpipe.data.rays import RayBundle
 from nerfpipe.util.typing import Float, Tensor
 
@@ -73,6 +74,9 @@ class SceneInfo:
     (no points, a free-standing object, an aerial or a facade capture)."""
     points: "Float[Tensor, 'num_points 3'] | None" = None
     """The sparse points of a real capture in the scene box (SfM's evidence of surfaces; None: none)."""
+    cameras: "Cameras | None" = None
+    """The training cameras (poses and intrinsics, no images; None: not known): what they see
+    (:meth:`nerfpipe.fields.plane.PlaneTexture.cover`)."""
 
 
 class Callback(Enum):

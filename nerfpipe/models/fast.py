@@ -885,6 +885,8 @@ class FastModel(Model):
         around = use_behind and info.arc >= SPARSITY_MIN_ARC  # an object photographed from around it, its surroundings modelled
         use_plane = info.support_plane is not None and (around if cfg.support_texture is None else cfg.support_texture)
         self.plane = PlaneTexture(cfg.plane, torch.tensor(info.support_plane), aabb.mean(0), 0.5 * self._diagonal(aabb), code_dim) if use_plane else None
+        if self.plane is not None and info.cameras is not None:
+            self.plane.cover(info.cameras)  # the texture only where photographs show the plane (PlaneTextureConfig.min_views)
         self.register_buffer("object_box", aabb.clone(), persistent=False)
         self._object_diagonal = self._diagonal(aabb)
         """The object region's diagonal, read once (not from the device every step)."""
@@ -1478,6 +1480,8 @@ class FastModel(Model):
             self.behind = None
         if self.plane is not None and not any(k.startswith(prefix + "plane.") for k in state_dict):  # from before the support's texture
             self.plane = None
+        if self.plane is not None:  # from before the texture's coverage: everywhere
+            state_dict.setdefault(prefix + "plane.coverage", torch.ones_like(self.plane.coverage))
         if self.appearance is not None and prefix + "appearance" not in state_dict:
             self.appearance = None
         if self.image_codes is not None and prefix + "image_codes" not in state_dict:  # from before the image codes

@@ -353,7 +353,7 @@ def scene_info(scene: SceneData, train_max_size: "int | None" = None, exposure: 
                      unbounded=scene.shows_surroundings, focal_spread=spread,
                      exposure_spread=exposure_spread_of(scene) if exposure else 0.0, arc=camera_arc(cams, scene.aabb.mean(0)),
                      pixel_footprint=pixel_footprint(cams, scene.aabb), support_plane=support_plane_of(scene),
-                     points=_box_points(scene))
+                     points=_box_points(scene), cameras=cams)
 
 
 EXPOSURE_MAX_PHOTOS = 100
