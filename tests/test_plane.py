@@ -108,12 +108,9 @@ def test_the_texture_is_only_where_training_cameras_see_the_plane_steeply_enough
     both = _camera_above([0.0, 0.2, 1.5], [0.0, 0.0, -0.5])
     from nerfpipe.data.cameras import Cameras
 
-    def cams(*c):
-        return Cameras(**{f: torch.cat([getattr(x, f) for x in c]) for f in ("world_from_cam", "fx", "fy", "cx", "cy", "width", "height", "distortion", "dist_params")})
-
-    tex.cover(cams(down, below, grazing))
+    tex.cover(Cameras.cat([down, below, grazing]))
     assert tex.coverage.max() == pytest.approx(0.5)
-    tex.cover(cams(down, both))
+    tex.cover(Cameras.cat([down, both]))
     assert torch.equal(tex.rgba(inside)[:, 3], everywhere[:2]) and float((tex.coverage == 1).float().mean()) < share  # where both see it
     tex.cfg.min_views = 0
     tex.cover(down)

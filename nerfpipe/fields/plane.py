@@ -152,18 +152,15 @@ class PlaneTexture(nn.Module):
         ys, xs = torch.meshgrid(axis, axis, indexing="ij")  # grid_sample's (x, y) order, align_corners=True
         points = self.points_at(torch.stack([xs, ys], dim=-1).reshape(-1, 2))
         cameras = cameras.to(self.origin.device)
-        above = (cameras.world_from_cam[:, :3, 3] @ self.plane[:3] + self.plane[3]) > 0
         count = torch.zeros(len(points), device=points.device)
         for start in range(0, len(cameras), chunk):
             cams = cameras[start : start + chunk]
             pix, depth = cams[:, None].expand(len(cams), len(points)).project(points[None].expand(len(cams), -1, -1))
             w, h = cams.width.reshape(-1, 1).to(pix), cams.height.reshape(-1, 1).to(pix)
             seen = (depth > 0) & (pix[..., 0] >= 0) & (pix[..., 0] <= w) & (pix[..., 1] >= 0) & (pix[..., 1] <= h)
-            centres = cams.world_from_cam[:, :3, 3]
-            to_cam = centres[:, None] - points[None]
-            cosine = (to_cam @ self.plane[:3]) / to_cam.norm(dim=-1).clamp(min=1e-12)
-            seen &= cosine >= self.cfg.min_incidence
-            count += (seen & above[start : start + chunk, None]).sum(0)
+            to_cam = cams.world_from_cam[:, None, :3, 3] - points[None]
+            cosine = (to_cam @ self.plane[:3]) / to_cam.norm(dim=-1).clamp(min=1e-12)  # > 0: the camera above the plane
+            count += (seen & (cosine > 0) & (cosine >= self.cfg.min_incidence)).sum(0)
         self.coverage.copy_((count.view(1, 1, n, n) / self.cfg.min_views).clamp(max=1.0))
 
     def rgba(self, points: Float[Tensor, "num_points 3"], codes: "Float[Tensor, 'num_points code_dim'] | None" = None) -> Float[Tensor, "num_points 4"]:
