@@ -189,6 +189,8 @@ class StepCounts:
     max_syncs: int
     sync_ops: "dict[str, int]"
     """Host synchronisations over all the steps, by operator."""
+    per_step: "list[tuple[int, int]]" = field(default_factory=list)
+    """(ATen ops, host syncs) of each step, in order."""
 
     def row(self) -> "dict[str, float]":
         """The figures of a benchmark row."""
@@ -208,6 +210,7 @@ def count_steps(step, steps: int) -> StepCounts:
     return StepCounts(
         steps=steps, ops=sum(p[0] for p in per) / n, syncs=sum(p[1] for p in per) / n, uploads=sum(p[2] for p in per) / n,
         max_ops=max((p[0] for p in per), default=0), max_syncs=max((p[1] for p in per), default=0), sync_ops=dict(total),
+        per_step=[(p[0], p[1]) for p in per],
     )
 
 
