@@ -101,14 +101,16 @@ budget counts each step at :data:`ROUNDS_BASE_SYNCS`."""
 ROUNDS_BASE_SYNCS = 8
 """Host syncs of a step of three rounds (per round one ``nonzero`` for its samples and one for the rays still alive, one
 each for the rays that start and the samples kept); a round more or fewer adds or takes 2."""
-CPU_TABLE_GRAD_OPS = 40
+CPU_TABLE_GRAD_OPS = 25
 """More ops allowed on the CPU: there the gather's backward into a table adds each channel apart
 (:func:`nerfpipe.functional.gather.table_grad`, session 57: 1.6-3x faster than one ``index_add_`` of rows; the 800²
 stand-in's step 12.7 % faster), 11 more ops per feature level and step: 1,287 -> 1,320 with rounds, 718 -> 751 in
 fixed shapes on this test's three levels. CUDA takes the one ``index_add_``: its budgets are unchanged. Since the
 CPU's rows are 32-bit and the product is written into its layout (session 58): 1,317 / 748. Since the CPU's trilinear
 weights and hashed rows are written a corner's column at a time (session 59: 8-11 % faster steps on colmap_mouse and the
-800² stand-in): 1,330 / 754."""
+800² stand-in): 1,330 / 754. Since the channels are added in one ``scatter_add_`` along a channels-first buffer (session 88,
+split between the threads; 5.6 / 10.8 % faster steps on colmap_mouse / lego_200): 739.4 in fixed shapes, 5 ops fewer per
+table of four channels: 25 more than CUDA's route."""
 MAX_SYNCS_PER_STEP = {"rounds": 10.0, "fixed_shapes": 2.0, "graph": 0.0}
 """Host syncs per steady step at most. With rounds: 73.9 at commit 9f82e41 (40.3 of them constant uploads); 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each
