@@ -6,8 +6,8 @@ at normalised coordinate ``(i / (rx - 1), j / (ry - 1), k / (rz - 1))`` in the u
 ``(i * ry + j) * rz + k``, so one trilinear read is a weighted sum of eight rows
 (:func:`nerfpipe.functional.gather.weighted_gather`: ``embedding_bag`` on the CPU). On CPU a gather and a
 weighted sum were about 3x faster than ``grid_sample`` on ``[C, rz, ry, rx]`` volumes for a dozen
-channels even before (as ``index_select`` and a product), and the backward pass is one ``scatter_add_`` per channel on
-the CPU, one ``index_add_`` elsewhere (:func:`nerfpipe.functional.gather.table_grad`).
+channels even before (as ``index_select`` and a product), and the backward pass is a ``scatter_add_`` of each channel on
+the CPU (one call for all), one ``index_add_`` elsewhere (:func:`nerfpipe.functional.gather.table_grad`).
 
 A level with more vertices than its table has rows is *hashed* (instant-ngp): vertex ``(i, j, k)`` is
 stored in row ``(i·p_i XOR j·p_j XOR k) mod rows`` of a table of ``rows`` (a power of two) rows, so memory
