@@ -109,8 +109,8 @@ fixed shapes on this test's three levels. CUDA takes the one ``index_add_``: its
 CPU's rows are 32-bit and the product is written into its layout (session 58): 1,317 / 748. Since the CPU's trilinear
 weights and hashed rows are written a corner's column at a time (session 59: 8-11 % faster steps on colmap_mouse and the
 800² stand-in): 1,330 / 754. Since the channels are added in one ``scatter_add_`` along a channels-first buffer (session 88,
-split between the threads; 5.6 / 10.8 % faster steps on colmap_mouse / lego_200): 739.4 in fixed shapes, 5 ops fewer per
-table of four channels: 25 more than CUDA's route."""
+split between the threads; 5.6 / 10.8 % faster steps on colmap_mouse / lego_200): 739.4 in fixed shapes (5 ops fewer per
+four-channel table's backward) and the allowance 40 -> 25."""
 MAX_SYNCS_PER_STEP = {"rounds": 10.0, "fixed_shapes": 2.0, "graph": 0.0}
 """Host syncs per steady step at most. With rounds: 73.9 at commit 9f82e41 (40.3 of them constant uploads); 9.6
 since: per round of early termination one ``nonzero`` for its samples and one for the rays still alive, one each

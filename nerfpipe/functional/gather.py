@@ -4,10 +4,10 @@
 8 for trilinear). On the CPU the forward is ``embedding_bag``'s weighted sum (one pass over the rows,
 no ``K``-times larger intermediate: 3-6x faster than an ``index_select`` and a contraction there,
 session 52); elsewhere it is an ``index_select`` and a contraction over the corners (:func:`corner_sum`).
-The backward into the table (:func:`table_grad`) is a ``scatter_add_`` of each channel into its own row on the CPU (1.6-3x
-faster there than ``index_add_`` of the corners' rows, session 57; one call for all channels, split between the threads,
-since session 88) and one ``index_add_`` elsewhere (``embedding_bag``'s own
-backward sorts indices: as fast as ``index_add_`` or up to 1.8x slower on CPU).
+The backward into the table (:func:`table_grad`) is a ``scatter_add_`` of each channel into its own row on the CPU
+(1.6-3x faster there than ``index_add_`` of the corners' rows, session 57; one call for all channels, split between
+the threads, since session 88) and one ``index_add_`` elsewhere (``embedding_bag``'s own backward sorts indices: as
+fast as ``index_add_`` or up to 1.8x slower on CPU).
 
 The backward into the weights (:func:`row_dot`) is a batched matrix product on the CPU (2-4x faster
 there than a product and a sum) and a product and a sum elsewhere: on CUDA the batched product of
@@ -74,9 +74,9 @@ def table_grad(
     the same order (the same values, bit for bit, where the adds are ordered): ``per_channel``, a ``scatter_add_``
     into a vector per channel (the CPU's route: one call over a channels-first buffer, whose channels torch's threads
     share; on real steps' calls 37 against 28 ms a step of colmap_mouse, session 88), else one ``index_add_`` of the
-    corners' rows (one kernel: CUDA's). On the CPU ``index_add_`` adds a matrix row as a slice, about 35 ns each, and a vector's elements in a tight loop: on
-    two cores, 552,000 corner reads into 4 channels of 2^20 / 2^19 / 124,800 / 16,000 rows took 28.8 / 25.4 / 8.1 /
-    6.8 ms against 17.9 / 7.9 / 3.4 / 2.5 (a weighted ``bincount`` per channel was 11.4 / 7.4 / 4.1 / 3.3, but its
+    corners' rows (one kernel: CUDA's). On the CPU ``index_add_`` adds a matrix row as a slice, about 35 ns each, and
+    a vector's elements in a tight loop: on two cores, 552,000 corner reads into 4 channels of 2^20 / 2^19 / 124,800 /
+    16,000 rows took 28.8 / 25.4 / 8.1 / 6.8 ms against 17.9 / 7.9 / 3.4 / 2.5 (a weighted ``bincount`` per channel was 11.4 / 7.4 / 4.1 / 3.3, but its
     output's size is read from the data: a host sync on CUDA, and in the CPU's count of them)."""
     flat = idx.reshape(-1)
     if per_channel:
