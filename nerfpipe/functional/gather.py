@@ -76,8 +76,9 @@ def table_grad(
     share; on real steps' calls 37 against 28 ms a step of colmap_mouse, session 88), else one ``index_add_`` of the
     corners' rows (one kernel: CUDA's). On the CPU ``index_add_`` adds a matrix row as a slice, about 35 ns each, and
     a vector's elements in a tight loop: on two cores, 552,000 corner reads into 4 channels of 2^20 / 2^19 / 124,800 /
-    16,000 rows took 28.8 / 25.4 / 8.1 / 6.8 ms against 17.9 / 7.9 / 3.4 / 2.5 (a weighted ``bincount`` per channel was 11.4 / 7.4 / 4.1 / 3.3, but its
-    output's size is read from the data: a host sync on CUDA, and in the CPU's count of them)."""
+    16,000 rows took 28.8 / 25.4 / 8.1 / 6.8 ms against 17.9 / 7.9 / 3.4 / 2.5 (a weighted ``bincount`` per channel was
+    11.4 / 7.4 / 4.1 / 3.3, but its output's size is read from the data: a host sync on CUDA, and in the CPU's count
+    of them)."""
     flat = idx.reshape(-1)
     if per_channel:
         rows, channels = table.shape
