@@ -947,6 +947,74 @@ def test_sky_residual_is_each_images_bilinear_texture_over_directions_zero_mean_
     torch.testing.assert_close(evaluated, plain)  # novel views: the mean (zero)
 
 
+def test_equirect_lookup_matches_the_one_direction_reference_values_and_gradients(device):
+    """:func:`equirect_lookup` against :func:`equirect_lookup_reference` (one texture and per-ray textures), the poles
+    and the seam at azimuth +-pi included, and its gradient in the textures against the reference's."""
+    from nerfpipe.functional.gather import equirect_lookup, equirect_lookup_reference
+
+    g = torch.Generator().manual_seed(5)
+    textures = torch.randn(3, 6, 12, 2, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(40, 3, generator=g), dim=-1)
+    d = torch.cat([d, torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [-1.0, 1e-7, 0.0], [-1.0, -1e-7, 0.0]])])
+    which = torch.randint(0, 3, (len(d),), generator=g)
+    got = equirect_lookup(textures.to(device), d.to(device), which.to(device))
+    ref_textures = textures.clone().requires_grad_(True)
+    want = torch.stack([equirect_lookup_reference(ref_textures[int(k)], tuple(map(float, v))) for v, k in zip(d, which)])
+    torch.testing.assert_close(got.detach().cpu(), want.detach(), atol=1e-5, rtol=0)
+    upstream = torch.randn(want.shape, generator=g)
+    textures_dev = textures.clone().to(device).requires_grad_(True)
+    (equirect_lookup(textures_dev, d.to(device), which.to(device)) * upstream.to(device)).sum().backward()
+    (want * upstream).sum().backward()
+    torch.testing.assert_close(textures_dev.grad.cpu(), ref_textures.grad, atol=1e-5, rtol=0)
+    one = equirect_lookup(textures[1], d)  # one texture for every ray
+    torch.testing.assert_close(one, equirect_lookup(textures, d, torch.ones(len(d), dtype=torch.long)))
+    upper = equirect_lookup(textures[2], d, polar_max=math.pi / 2)  # rows over the upper hemisphere, the last held below
+    want = torch.stack([equirect_lookup_reference(textures[2], tuple(map(float, v)), math.pi / 2) for v in d])
+    torch.testing.assert_close(upper, want, atol=1e-5, rtol=0)
+    below = d[:, 2] < 0
+    torch.testing.assert_close(upper[below], equirect_lookup(textures[2, -1:].expand(2, -1, -1), d[below]), atol=1e-6, rtol=0)
+
+
+def test_sky_map_is_a_shared_texture_behind_everything_in_training_and_renders():
+    """The sky map (``sky_map``): on where the sky residual is (photo collections), off elsewhere; added behind
+    everything for every image alike, in training and in evaluation renders; learnt (its own parameter group); a
+    checkpoint from before it loads without it, and one trained with it rebuilds it from the config's default."""
+    from nerfpipe.functional.gather import equirect_lookup
+    from nerfpipe.models.fast import SKY_MAP_FADE, SKY_MAP_ROWS
+
+    model = _model()
+    assert model.sky_map is not None and model.sky_map.shape == (SKY_MAP_ROWS, 2 * SKY_MAP_ROWS, 3)
+    assert _model(focal_spread=0.0).sky_map is None and _model(sky_map=0).sky_map is None
+    assert _model(sky_residual=0).sky_map is None and _model(sky_residual=0, sky_map=8).sky_map.shape == (8, 16, 3)
+    assert any(model.sky_map is p for group in model.param_groups() for p in group["params"])
+    assert model.stats()["sky_map_rows"] == SKY_MAP_ROWS and _model(sky_map=0).stats()["sky_map_rows"] == 0
+    down = _rays(64, 2)  # looking down: below the horizon
+    up = RayBundle(origins=-down.origins, directions=-down.directions, cam_idx=down.cam_idx, z_scale=down.z_scale)
+    g = torch.Generator().manual_seed(4)
+    for training in (True, False):
+        model.train(training)
+        for rays, sky in ((up, True), (down, False)):
+            with torch.no_grad():
+                model.sky_map.zero_()
+                plain = model.get_outputs(rays, torch.full((64, 3), 0.5)).rgb
+                model.sky_map.copy_(0.3 * torch.randn(model.sky_map.shape, generator=g))
+                mapped = model.get_outputs(rays, torch.full((64, 3), 0.5)).rgb
+            assert ((mapped - plain).abs().max() > 1e-3) == sky, (training, sky)
+    whole = _model(sky_map_upper=False)
+    with torch.no_grad():
+        whole.sky_map.copy_(0.3 * torch.randn(whole.sky_map.shape, generator=g))
+    torch.testing.assert_close(whole._sky_map(down.directions), equirect_lookup(whole.sky_map, down.directions))
+    torch.testing.assert_close(model._sky_map(up.directions), equirect_lookup(model.sky_map, up.directions, polar_max=math.pi / 2)
+                               * (up.directions[:, 2:] / SKY_MAP_FADE).clamp(max=1.0))
+    state = _model(sky_map=0).state_dict()
+    old = _model()
+    old.load_state_dict(state)
+    assert old.sky_map is None and "sky_map" not in old.state_dict()
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100, unbounded=True, focal_spread=1.0)
+    assert FastConfig(preset="small").for_checkpoint(state, info).sky_map == 0
+    assert FastConfig(preset="small").for_checkpoint(model.state_dict(), info).sky_map == SKY_MAP_ROWS
+
+
 def test_a_checkpoint_from_before_the_sky_residual_loads_without_it():
     state = {k: v for k, v in _model(sky_residual=0).state_dict().items()}
     model = _model()

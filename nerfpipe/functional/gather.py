@@ -15,6 +15,8 @@ there than a product and a sum) and a product and a sum elsewhere: on CUDA the b
 ms of GPU time of a fast training step on an H200 (session 22).
 """
 
+import math
+
 import torch
 
 from nerfpipe.util.typing import Float, Int, Tensor
@@ -121,3 +123,47 @@ def move_rows(old: Tensor, source: Int[Tensor, "num_new"], fill: "Tensor | None"
     taken = old.index_select(0, source.clamp(min=0).to(old.device))
     new = (source < 0).to(old.device).view(-1, *([1] * (old.ndim - 1)))
     return torch.where(new, torch.zeros_like(taken) if fill is None else fill, taken)
+
+
+def equirect_lookup(
+    textures: "Float[Tensor, 'rows cols C'] | Float[Tensor, 'num_textures rows cols C']", directions: Float[Tensor, "num_rays 3"],
+    texture_index: "Int[Tensor, 'num_rays'] | None" = None, polar_max: float = math.pi,
+) -> Float[Tensor, "num_rays C"]:
+    """Bilinear reads of equirectangular textures over the sphere of directions about the z axis (row 0 at +z,
+    column 0 at azimuth -pi; texel centres at half steps, edge texels held beyond them), differentiable in the
+    textures: one texture, or ``textures[texture_index[n]]`` for ray ``n``. The rows span the polar angles from 0 to
+    ``polar_max`` (pi: the whole sphere; pi / 2: the upper hemisphere, the last row held below it).
+    :func:`equirect_lookup_reference` reads one direction at a time.
+
+    Example:
+        >>> t = torch.arange(8.0).reshape(2, 4, 1)  # two rows, four columns
+        >>> equirect_lookup(t, torch.tensor([[0.0, 0.0, 1.0]])).tolist()  # straight up: the first row, azimuth 0
+        [[1.5]]
+    """
+    rows, cols, channels = textures.shape[-3:]
+    table = textures.reshape(-1, channels)
+    d = directions
+    u = (torch.atan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5) * cols - 0.5
+    v = torch.acos(d[:, 2].clamp(-1.0, 1.0)) / polar_max * rows - 0.5
+    u0, v0 = u.detach().floor().clamp(0, cols - 2), v.detach().floor().clamp(0, rows - 2)
+    fu, fv = (u - u0).clamp(0, 1), (v - v0).clamp(0, 1)
+    base = v0.long() * cols + u0.long()
+    if texture_index is not None:
+        base = base + texture_index.long() * (rows * cols)
+    idx = torch.stack([base, base + 1, base + cols, base + cols + 1], dim=-1)
+    w = torch.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], dim=-1).detach()
+    return weighted_gather(table, idx, w.to(table.dtype))
+
+
+def equirect_lookup_reference(texture: Float[Tensor, "rows cols C"], direction: "tuple[float, float, float]", polar_max: float = math.pi) -> Float[Tensor, "C"]:
+    """:func:`equirect_lookup` of one texture at one direction, written out (the slow, obvious reference)."""
+    rows, cols = texture.shape[:2]
+    x, y, z = direction
+    u = (math.atan2(y, x) / (2 * math.pi) + 0.5) * cols - 0.5
+    v = math.acos(max(-1.0, min(1.0, z))) / polar_max * rows - 0.5
+    u = min(max(u, 0.0), cols - 1.0)
+    v = min(max(v, 0.0), rows - 1.0)
+    i, j = min(int(math.floor(v)), rows - 2), min(int(math.floor(u)), cols - 2)
+    fv, fu = v - i, u - j
+    return ((1 - fv) * ((1 - fu) * texture[i, j] + fu * texture[i, j + 1])
+            + fv * ((1 - fu) * texture[i + 1, j] + fu * texture[i + 1, j + 1]))

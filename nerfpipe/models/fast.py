@@ -30,6 +30,7 @@ from nerfpipe.fields.background import BackgroundField, BackgroundFieldConfig
 from nerfpipe.fields.fast_field import FastField, direction_encoding
 from nerfpipe.fields.grid import BLOCK, axis_resolution, needed_blocks
 from nerfpipe.fields.plane import PlaneTexture, PlaneTextureConfig
+from nerfpipe.functional.gather import equirect_lookup
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
@@ -131,6 +132,25 @@ right halves appearance fitted, none / 32 / 16 rows: 14.99 / 15.77 / **15.87** d
 after 600), at 0.74-0.83x the seconds per step (13-23 samples per ray against 18-28: less fog in the box), the orbit's
 sky clearer of cloud floaters with 32 rows than 16, and with 16 than none. End to end (``nerfpipe run SFM --time-budget
 270``, the two codes at once, one thread each): see the session-62 row of docs/measured.md."""
+
+SKY_MAP_ROWS = 32
+"""``FastConfig.sky_map`` where the sky residual is on (photo collections): rows over the upper hemisphere, a cell of
+2.8 degrees. The direction-only background reads the direction through spherical harmonics of degree 3 (a cell of
+tens of degrees), and the per-image residual is zero-mean: the sky that the photographs share (clouds, their blue's
+gradient) had no place at infinity and went into cloud floaters in the box, which every far orbit frame showed as a
+box of cloud. photos_sacre_coeur (session 89; ``python -m benchmarks.side_by_side SFM --variants "base:sky_map=0"
+"m64:sky_map=64 sky_map_upper=False" "m32:sky_map=32 sky_map_upper=False" --marks 300 600 900 --eval-views 2
+--eval-max-size 400 --eval-supersample 1 --chunk 50``, the sfm folder of a ``nerfpipe run``; ``up32`` / ``up64``: the
+upper hemisphere, in a second run of the same folder), right halves appearance fitted after 300 / 600 / 900 steps:
+none 15.36 / 15.20 / 15.27 dB (17.1-18.5 samples per ray from 600 steps on), the whole sphere at 64 rows 15.42 /
+15.59 / 15.58 (13.3-14.0), at 32 rows 15.44 / 15.45 / 15.58, the upper hemisphere at 32 rows 15.34 / 15.65 /
+**15.85** (14.3-15.1), at 64 rows 15.46 / 15.38 / 15.36. The whole sphere also painted the trees and roofs at the
+photographs' sides onto infinity, dark blobs low in the far orbit frames; the upper hemisphere keeps the ground
+directions to the field behind the box. photos_sceaux_castle (not a photo collection: off by default), the whole
+sphere at 64 / 128 rows against none: 14.68 / 14.55 against 15.16 dB after 900 steps (2 views): off there."""
+SKY_MAP_FADE = 0.05
+"""Height of a direction (its up component) over which :attr:`FastConfig.sky_map` fades in above the horizon (about
+3 degrees): no seam at the horizon."""
 
 DENSITY_LEVELS_REAL = 2
 """``FastConfig.density_levels`` of real captures: their density from the two coarsest levels (32 and 64 vertices along the
@@ -689,6 +709,16 @@ class FastConfig:
     (:func:`photo_collection`), else 0 (one camera's session: see :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
     sky_residual_lr: float = 1e-2
     """Adam learning rate of :attr:`sky_residual`'s textures."""
+    sky_map: "int | None" = None
+    """Rows of a colour texture over the sphere of directions (twice as many columns; 0: off) added, in training and in
+    every render, to what the direction-only background shows behind everything: the sky's detail at infinity, shared by
+    every photograph (the background's head reads only a low-degree encoding of the direction). None:
+    :data:`SKY_MAP_ROWS` where :attr:`sky_residual` is on, else 0."""
+    sky_map_lr: float = 1e-2
+    """Adam learning rate of :attr:`sky_map`."""
+    sky_map_upper: bool = True
+    """The sky map covers the upper hemisphere alone (about the world's up, +z), fading to nothing over the last
+    :data:`SKY_MAP_FADE` of height above the horizon; False: the whole sphere."""
     pose_lr: float = 1e-3
     """Adam learning rate of the per-image pose corrections (radians and scene units)."""
     depth_weight: float = 0.1
@@ -755,6 +785,8 @@ class FastConfig:
             raise ValueError(f"adam_beta2 must lie in [0, 1), got {self.adam_beta2}")
         if self.sky_residual is not None and not (self.sky_residual == 0 or self.sky_residual >= 2):
             raise ValueError(f"sky_residual must be 0 (off) or at least 2 rows, got {self.sky_residual}")
+        if self.sky_map is not None and not (self.sky_map == 0 or self.sky_map >= 2):
+            raise ValueError(f"sky_map must be 0 (off) or at least 2 rows, got {self.sky_map}")
         if self.appearance_dim is not None and self.appearance_dim < 0:
             raise ValueError(f"appearance_dim must be 0 (off) or more, got {self.appearance_dim}")
 
@@ -768,6 +800,8 @@ class FastConfig:
         checkpoint's (their rule reads the photos, :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
         trained = {"appearance": "appearance" in state, "appearance_dim": state["image_codes"].shape[1] if "image_codes" in state else 0,
                    "sky_residual": state["sky"].shape[1] if "sky" in state else 0}
+        if self.sky_map is None:  # what it was trained with
+            self = replace(self, sky_map=state["sky_map"].shape[0] if "sky_map" in state else 0)
         if self.appearance_parts(scene_info) != tuple(trained.values()):  # what it was trained with, whatever the photos say today
             self = replace(self, **{k: v for k, v in trained.items() if getattr(self, k) is None})
         cap = self.resolved(scene_info)
@@ -874,6 +908,8 @@ class FastModel(Model):
         self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
         self.pose_deltas = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 6)) if cfg.pose_refine else None
         self.sky = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), rows, 2 * rows, 3)) if rows > 0 else None
+        map_rows = (SKY_MAP_ROWS if rows > 0 else 0) if cfg.sky_map is None else cfg.sky_map
+        self.sky_map = torch.nn.Parameter(torch.zeros(map_rows, 2 * map_rows, 3)) if map_rows > 0 else None
         self._view_appearance: "Tensor | None" = None
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
         learn_bg = (not info.has_alpha) if cfg.learned_background is None else cfg.learned_background
@@ -1025,8 +1061,12 @@ class FastModel(Model):
         if self.background is not None:
             head_in = dir_code if codes is None else torch.cat([dir_code, codes], dim=-1)
             bg = (bg + self.background(head_in)).clamp(0.0, 1.0)
+        if self.sky_map is not None:
+            bg = bg + self._sky_map(rays.directions.reshape(-1, 3))
         if self.sky is not None and self.training:
-            bg = (bg + self._sky_residual(rays)).clamp(0.0, 1.0)
+            bg = bg + self._sky_residual(rays)
+        if self.sky is not None or self.sky_map is not None:
+            bg = bg.clamp(0.0, 1.0)
         beyond = self._step >= self.cfg.behind_from or not self.training
         if self.behind is not None and beyond:  # the table (the plane's texture) at its distance among what lies behind the box
             layer = self.plane.layer(rays.origins, rays.directions, codes) if self.plane is not None else None
@@ -1194,22 +1234,17 @@ class FastModel(Model):
         directions = (rot @ rays.directions[:, :, None])[:, :, 0]
         return replace(rays, origins=rays.origins + delta[rays.cam_idx.reshape(-1), 3:], directions=directions)
 
+    def _sky_map(self, directions: Float[Tensor, "num_rays 3"]) -> Float[Tensor, "num_rays 3"]:
+        """:attr:`FastConfig.sky_map` at each direction."""
+        if not self.cfg.sky_map_upper:
+            return equirect_lookup(self.sky_map, directions)
+        fade = (directions[:, 2:3] * (1.0 / SKY_MAP_FADE)).clamp(0.0, 1.0)
+        return equirect_lookup(self.sky_map, directions, polar_max=math.pi / 2) * fade
+
     def _sky_residual(self, rays: RayBundle) -> Float[Tensor, "num_rays 3"]:
         """Each training ray's image's residual (:attr:`FastConfig.sky_residual`) at its direction, bilinear over an
-        equirectangular grid about the world's z axis."""
-        from nerfpipe.functional.gather import weighted_gather
-
-        _, rows, cols, _ = self.sky.shape
-        table = (self.sky - self.sky.mean(0, keepdim=True)).reshape(-1, 3)
-        d = rays.directions.reshape(-1, 3)
-        u = (torch.atan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5) * cols - 0.5
-        v = torch.acos(d[:, 2].clamp(-1.0, 1.0)) / math.pi * rows - 0.5
-        u0, v0 = u.detach().floor().clamp(0, cols - 2), v.detach().floor().clamp(0, rows - 2)
-        fu, fv = (u - u0).clamp(0, 1), (v - v0).clamp(0, 1)
-        base = rays.cam_idx.reshape(-1).long() * rows * cols + v0.long() * cols + u0.long()
-        idx = torch.stack([base, base + 1, base + cols, base + cols + 1], dim=-1)
-        w = torch.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], dim=-1).detach()
-        return weighted_gather(table, idx, w.to(table.dtype))
+        equirectangular grid about the world's z axis (:func:`~nerfpipe.functional.gather.equirect_lookup`)."""
+        return equirect_lookup(self.sky - self.sky.mean(0, keepdim=True), rays.directions.reshape(-1, 3), rays.cam_idx.reshape(-1))
 
     def _image_codes(self, rays: RayBundle) -> "Float[Tensor, 'num_rays code_dim'] | None":
         """Each ray's image code: its training image's (zero-mean over the images) in training, else a fitted
@@ -1440,6 +1475,8 @@ class FastModel(Model):
             groups.append({"params": [self.pose_deltas], "lr": self.cfg.pose_lr, "eps": 1e-15})
         if self.sky is not None:
             groups.append({"params": [self.sky], "lr": self.cfg.sky_residual_lr, "eps": 1e-15})
+        if self.sky_map is not None:
+            groups.append({"params": [self.sky_map], "lr": self.cfg.sky_map_lr, "eps": 1e-15})
         return groups
 
     def stats(self) -> "dict[str, float]":
@@ -1457,6 +1494,7 @@ class FastModel(Model):
             support_texture=float(self.plane is not None),
             behind_front=float(self.front),
             appearance=float(self.appearance is not None),
+            sky_map_rows=float(0 if self.sky_map is None else self.sky_map.shape[0]),
             exposure_spread=self.exposure_spread,
             lr_batch_scale=self.lr_batch_scale,
         )
@@ -1493,6 +1531,8 @@ class FastModel(Model):
                 self.behind = BackgroundField(self.cfg.behind, self.behind.aabb).to(device)
         if self.sky is not None and prefix + "sky" not in state_dict:  # from before the sky residual (off in renders)
             self.sky = None
+        if self.sky_map is not None and prefix + "sky_map" not in state_dict:  # from before the sky map
+            self.sky_map = None
         steps = state_dict.setdefault(prefix + "trained_steps", torch.tensor(10**9))
         self._sparse_pending = bool(state_dict.setdefault(prefix + "sparse_pending", torch.tensor(False)))  # once per load
         # checkpoints from before density_levels: density from every level
