@@ -144,7 +144,8 @@ box of cloud. photos_sacre_coeur (session 89; ``python -m benchmarks.side_by_sid
 upper hemisphere, in a second run of the same folder), right halves appearance fitted after 300 / 600 / 900 steps:
 none 15.36 / 15.20 / 15.27 dB (17.1-18.5 samples per ray from 600 steps on), the whole sphere at 64 rows 15.42 /
 15.59 / 15.58 (13.3-14.0), at 32 rows 15.44 / 15.45 / 15.58, the upper hemisphere at 32 rows 15.34 / 15.65 /
-**15.85** (14.3-15.1), at 64 rows 15.46 / 15.38 / 15.36. The whole sphere also painted the trees and roofs at the
+**15.85** (14.3-15.1), at 64 rows 15.46 / 15.38 / 15.36; on another run's sfm folder none 15.47 / 15.38 / 15.16, the
+upper hemisphere at 32 rows 15.45 / **15.55** / **15.68** at 0.92x the seconds per step. The whole sphere also painted the trees and roofs at the
 photographs' sides onto infinity, dark blobs low in the far orbit frames; the upper hemisphere keeps the ground
 directions to the field behind the box. photos_sceaux_castle (not a photo collection: off by default), the whole
 sphere at 64 / 128 rows against none: 14.68 / 14.55 against 15.16 dB after 900 steps (2 views): off there."""
