@@ -1011,8 +1011,10 @@ def test_sky_map_is_a_shared_texture_behind_everything_in_training_and_renders()
     old.load_state_dict(state)
     assert old.sky_map is None and "sky_map" not in old.state_dict()
     info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100, unbounded=True, focal_spread=1.0)
-    assert FastConfig(preset="small").for_checkpoint(state, info).sky_map == 0
-    assert FastConfig(preset="small").for_checkpoint(model.state_dict(), info).sky_map == SKY_MAP_ROWS
+    assert FastConfig(preset="small").for_checkpoint(state, info).setup(info).sky_map is None
+    cfg = FastConfig(preset="small")
+    assert cfg.for_checkpoint(model.state_dict(), info) is cfg  # trained with the default: the config as it is
+    assert cfg.for_checkpoint(_model(sky_map=8).state_dict(), info).setup(info).sky_map.shape == (8, 16, 3)
 
 
 def test_a_checkpoint_from_before_the_sky_residual_loads_without_it():

@@ -801,10 +801,11 @@ class FastConfig:
         checkpoint's (their rule reads the photos, :data:`APPEARANCE_EXPOSURE_SPREAD`)."""
         trained = {"appearance": "appearance" in state, "appearance_dim": state["image_codes"].shape[1] if "image_codes" in state else 0,
                    "sky_residual": state["sky"].shape[1] if "sky" in state else 0}
-        if self.sky_map is None:  # what it was trained with
-            self = replace(self, sky_map=state["sky_map"].shape[0] if "sky_map" in state else 0)
         if self.appearance_parts(scene_info) != tuple(trained.values()):  # what it was trained with, whatever the photos say today
             self = replace(self, **{k: v for k, v in trained.items() if getattr(self, k) is None})
+        map_rows = state["sky_map"].shape[0] if "sky_map" in state else 0
+        if self.sky_map is None and map_rows != (SKY_MAP_ROWS if self.appearance_parts(scene_info)[2] > 0 else 0):
+            self = replace(self, sky_map=map_rows)  # what it was trained with (none before session 89)
         cap = self.resolved(scene_info)
         legacy = LEGACY_CAPACITY.get(cap["preset"])
         if legacy is None or self.levels is not None or self.log2_hashmap_size is not None or not cap["log2_hashmap_size"]:
