@@ -711,10 +711,10 @@ class FastConfig:
     sky_residual_lr: float = 1e-2
     """Adam learning rate of :attr:`sky_residual`'s textures."""
     sky_map: "int | None" = None
-    """Rows of a colour texture over the sphere of directions (twice as many columns; 0: off) added, in training and in
-    every render, to what the direction-only background shows behind everything: the sky's detail at infinity, shared by
-    every photograph (the background's head reads only a low-degree encoding of the direction). None:
-    :data:`SKY_MAP_ROWS` where :attr:`sky_residual` is on, else 0."""
+    """Rows of a colour texture over the directions (the upper hemisphere: :attr:`sky_map_upper`; twice as many columns;
+    0: off) added, in training and in every render, to what the direction-only background shows behind everything: the
+    sky's detail at infinity, shared by every photograph (the background's head reads only a low-degree encoding of the
+    direction). None: :data:`SKY_MAP_ROWS` where :attr:`sky_residual` is on, else 0."""
     sky_map_lr: float = 1e-2
     """Adam learning rate of :attr:`sky_map`."""
     sky_map_upper: bool = True
@@ -804,7 +804,7 @@ class FastConfig:
         if self.appearance_parts(scene_info) != tuple(trained.values()):  # what it was trained with, whatever the photos say today
             self = replace(self, **{k: v for k, v in trained.items() if getattr(self, k) is None})
         map_rows = state["sky_map"].shape[0] if "sky_map" in state else 0
-        if self.sky_map is None and map_rows != (SKY_MAP_ROWS if self.appearance_parts(scene_info)[2] > 0 else 0):
+        if self.sky_map is None and map_rows != self.sky_map_rows(scene_info):
             self = replace(self, sky_map=map_rows)  # what it was trained with (none before session 89)
         cap = self.resolved(scene_info)
         legacy = LEGACY_CAPACITY.get(cap["preset"])
@@ -823,6 +823,12 @@ class FastConfig:
         code_dim = ((APPEARANCE_DIM if collection else 0) if self.appearance_dim is None else self.appearance_dim) if use_app else 0
         rows = (SKY_RESIDUAL_ROWS if use_app and collection else 0) if self.sky_residual is None else self.sky_residual
         return use_app, code_dim, rows
+
+    def sky_map_rows(self, scene_info: SceneInfo) -> int:
+        """The sky map's rows as resolved for a scene (0: none): :data:`SKY_MAP_ROWS` where the sky residual is on."""
+        if self.sky_map is not None:
+            return self.sky_map
+        return SKY_MAP_ROWS if self.appearance_parts(scene_info)[2] > 0 else 0
 
     def resolved(self, scene_info: SceneInfo) -> dict:
         """The capacity actually used: preset values with overrides applied."""
@@ -910,7 +916,7 @@ class FastModel(Model):
         self.image_codes = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), code_dim)) if code_dim else None
         self.pose_deltas = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), 6)) if cfg.pose_refine else None
         self.sky = torch.nn.Parameter(torch.zeros(max(info.num_images, 1), rows, 2 * rows, 3)) if rows > 0 else None
-        map_rows = (SKY_MAP_ROWS if rows > 0 else 0) if cfg.sky_map is None else cfg.sky_map
+        map_rows = cfg.sky_map_rows(info)
         self.sky_map = torch.nn.Parameter(torch.zeros(map_rows, 2 * map_rows, 3)) if map_rows > 0 else None
         self._view_appearance: "Tensor | None" = None
         """A held-out view's fitted correction and code (:meth:`fitted_appearance`), used instead of the mean."""
