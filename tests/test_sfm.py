@@ -204,7 +204,7 @@ def test_a_reconstruction_with_a_conflict_is_left_out_where_one_without_places_t
     turn = Rotation.from_rotvec(np.radians(70.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
     folded = {n: r @ turn if i >= 9 else r for i, (n, r) in enumerate(sorted(right.items()))}
     rotations = {"first": right, "other": folded if placed == "folded" else right}
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: rotations[rec])
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec, images=None: rotations[rec])
     candidates = [(1024, "first", Path("a")), (640, "other", Path("b"))]
     assert sfm.with_conflicts(candidates, unfoldings) == left_out
 
@@ -367,7 +367,7 @@ def test_the_strict_mapping_reads_the_chosen_image_sizes_own_matches(tmp_path, m
         raise NerfpipeError("no reconstruction", work)
 
     monkeypatch.setattr(sfm, "reconstruct", mapping)
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec, images=None: {})
     chosen = object(), tmp_path / "size640" / "images"
     rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, None, logging.getLogger("test"))
     assert (rec, images) == chosen and record == {"registered": 0}
@@ -438,7 +438,7 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
     caplog.clear()
     kept, passed = {"max_image_size": 640, "kept": 9, "of": 20, "unshared": False}, []
-    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(): passed.append(unfolded) or (kept if rivals else None))
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None: passed.append(unfolded) or (kept if rivals else None))
     with caplog.at_level(logging.WARNING, logger="test"):  # a rival reconstruction: the photos placed alike, said
         rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}},
                                                unfolded_sizes=frozenset({640}))  # fmt: skip
@@ -450,7 +450,7 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
         raise NerfpipeError("no reconstruction", tmp_path)
 
     monkeypatch.setattr(sfm, "reconstruct", no_reconstruction)
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec, images=None: {})
     with caplog.at_level(logging.WARNING, logger="test"):  # time enough: the test runs (here: its mapping finds nothing)
         assert sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 1000.0, logging.getLogger("test"))[2] == {"registered": 0}
     assert not caplog.records
@@ -467,7 +467,7 @@ def test_the_consensus_keeps_the_photos_a_rival_lacks_only_where_not_one_conflic
     (tmp_path / "database.db").write_bytes(b"")
     chosen, seen = (object(), tmp_path / "images"), []
     monkeypatch.setattr(unfold, "verified_pairs", lambda database: {})
-    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(): seen.append(keep_unshared))
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None: seen.append(keep_unshared))
     photos = [tmp_path / f"{i}.jpg" for i in range(10)]
     for conflicts, unshared in (([], True), ([("a", "b")], False), ([("a", "b"), ("c", "d")], False)):
         monkeypatch.setattr(unfold, "view_conflicts", lambda rec, pairs, found=conflicts: found)
@@ -511,7 +511,7 @@ def _strict_without_colmap(monkeypatch, mapping, check) -> None:
     monkeypatch.setattr(sfm, "flatten_names", lambda rec: None)
     monkeypatch.setattr(sfm, "drop_failed_registrations", lambda rec, spread: [])
     monkeypatch.setattr(sfm, "keep_registered", lambda rec, names: None)
-    monkeypatch.setattr(sfm, "model_rotations", lambda rec: {})
+    monkeypatch.setattr(sfm, "model_rotations", lambda rec, images=None: {})
     monkeypatch.setattr(sfm, "subset_check", check)
 
 
@@ -666,6 +666,36 @@ def test_a_turned_photos_reconstruction_is_turned_back_exactly(tmp_path):
             assert np.allclose(image.camera.img_from_cam(image.cam_from_world() * point.xyz), image.points2D[el.point2D_idx].xy, atol=1e-9)
     assert out.num_points3D() == 12 and out.compute_mean_reprojection_error() < 1e-9
     assert unturn(rec, tmp_path / "nothing" / "images") == (rec, tmp_path / "nothing" / "images")  # nothing turned
+
+
+def test_the_rotations_of_a_turned_photo_compare_upright(tmp_path):
+    """Reconstructions at two image sizes can turn different photos (sizes that round to swapped ones at one size and
+    not at another: the Sacre Coeur's, session 90): their rotations compare as the upright cameras, as :func:`unturn`
+    gives the reconstruction back, so a turned photo is not a quarter turn of disagreement."""
+    import pycolmap
+
+    from nerfpipe.plugins.sfm import UPRIGHT_DIR, model_rotations, rotation_agreement, unturn
+
+    rng = np.random.default_rng(2)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=30, height=40, params=[35.0, 14.0, 21.0, 0.0], camera_id=1))
+    names = ["a.jpg", "t.jpg", "u.jpg", "v.jpg"]
+    for image_id, name in enumerate(names, start=1):
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(0.0, 0.5, 3)), rng.normal(0.0, 1.0, 3))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=image_id), pose)
+    images = tmp_path / "images"
+    images.mkdir()
+    (tmp_path / UPRIGHT_DIR).mkdir()
+    for name in names:
+        (images / name).write_bytes(b"photo")
+    (tmp_path / UPRIGHT_DIR / "t.jpg").write_bytes(b"upright")
+    upright = model_rotations(unturn(rec, images)[0])
+    got, as_mapped = model_rotations(rec, images), model_rotations(rec)
+    assert got.keys() == upright.keys() == set(names)
+    assert all(np.allclose(got[n], upright[n], atol=1e-9) for n in names)
+    assert np.allclose(as_mapped["a.jpg"], upright["a.jpg"]) and not np.allclose(as_mapped["t.jpg"], upright["t.jpg"], atol=0.1)
+    assert rotation_agreement(got, upright)["agree"] == 4 and rotation_agreement(as_mapped, upright)["agree"] == 3
+    assert model_rotations(rec, tmp_path / "nothing" / "images").keys() == set(names)  # nothing turned there
 
 
 def test_a_portrait_photo_among_landscape_ones_shares_their_camera_and_keeps_its_pose(photos, tmp_path):

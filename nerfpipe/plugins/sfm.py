@@ -227,6 +227,10 @@ UPRIGHT_DIR = "upright"
 """Beside a reconstruction's images folder: the upright copies of the photos turned a quarter for the mapping
 (:func:`turn_photos`); the names in it are the turned photos."""
 
+QUARTER = ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+"""The rotation from a camera turned a quarter counter-clockwise with its photo (:func:`turn_photos`) to the upright
+camera: an upright ``cam_from_world`` rotation is ``QUARTER @ R`` of the turned one's ``R``."""
+
 TURNABLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 """Camera models whose parameters describe the same lens after a quarter turn of the image (focal lengths and
 principal point swap; the radial terms are symmetric): photos are turned to share a camera only for these."""
@@ -293,7 +297,7 @@ def unturn(rec, images: Path) -> "tuple[object, Path]":
     for cam in rec.cameras.values():
         out.add_camera_with_trivial_rig(pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
                                                         params=list(cam.params), camera_id=cam.camera_id))
-    quarter = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])), np.zeros(3))
+    quarter = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array(QUARTER)), np.zeros(3))
     turned_cams: "dict[int, int]" = {}
     registered = set()
     for image_id in rec.reg_image_ids():
@@ -676,11 +680,18 @@ def rotation_errors(rotations: "dict[str, object]", reference: "dict[str, object
     return {n: float(e) for n, e in zip(names, best)}
 
 
-def model_rotations(rec) -> "dict[str, object]":
-    """``cam_from_world`` rotations (3x3 arrays) of a pycolmap reconstruction's posed images, by file name."""
+def model_rotations(rec, images: "Path | None" = None) -> "dict[str, object]":
+    """``cam_from_world`` rotations (3x3 arrays) of a pycolmap reconstruction's posed images, by file name; of the
+    upright cameras where ``images`` (the folder it was mapped on) names photos that :func:`turn_photos` turned, so
+    that reconstructions at image sizes that turned different photos compare. Photos of different sizes round to
+    swapped sizes at one size and not at another: the Sacre Coeur's ten photos (no EXIF), a portrait one turned at
+    640 px and not at 1,024, read 90 degrees apart as the sizes' only disagreement in 4 of 5 runs (session 90), and one
+    run's 100-step check then kept the 640 px reconstruction of 8 photos, and its consensus 7."""
     import numpy as np
 
-    return {Path(img.name).name: np.asarray(img.cam_from_world().rotation.matrix()) for img in rec.images.values() if img.has_pose}
+    turned = turned_names(images) if images is not None else set()
+    rotations = {Path(img.name).name: np.asarray(img.cam_from_world().rotation.matrix()) for img in rec.images.values() if img.has_pose}
+    return {name: np.array(QUARTER) @ r if name in turned else r for name, r in rotations.items()}
 
 
 SAME_POSES = 0.9
@@ -875,7 +886,7 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
         database = images.parent / "database.db"
         unfolded = config.unfold and len(photos) <= config.exhaustive_max_photos and database.is_file()
         unshared = bool(unfolded and not unfold.view_conflicts(rec, unfold.verified_pairs(database)))  # not one conflict
-        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes)
+        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes, images=images)
         if consensus:
             log.warning("sfm: no time to test the reconstruction for a fold (%.0f s left): kept the %d of its %d photos that the "
                         "%d px reconstruction %s (a run with a larger --time-budget tests them all)", time_left,
@@ -922,7 +933,8 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
     return strict, strict_images, record
 
 
-def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, unfolded: "frozenset[int]" = frozenset()) -> "dict | None":
+def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, unfolded: "frozenset[int]" = frozenset(),
+                   images: "Path | None" = None) -> "dict | None":
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
@@ -941,11 +953,11 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     conflict, 4 of them 148-166 degrees off and absent at 1,024 px: all 15 were kept. Only where ``rec`` was not unfolded
     itself (:func:`choose_reconstruction`): an unfolded reconstruction's photos passed that test, and an unfolded 640 px
     witness of 11 photos (23 of colmap_mouse's photos as HEIC) made the unfolded 1,024 px one's 18-19 right photos 11
-    in 2 of 5 runs. Returns what was kept
+    in 2 of 5 runs. ``images``: the folder ``rec`` was mapped on (upright rotations: :func:`model_rotations`). Returns what was kept
     (``unshared``: whether the photos the rival lacks were), or None where nothing was."""
     if not rivals:
         return None
-    rotations = model_rotations(rec)
+    rotations = model_rotations(rec, images)
     best = None
     for size, rival in rivals.items():
         errors = rotation_errors(rotations, rival)
@@ -983,7 +995,7 @@ def subset_check(full, subset, work: Path, steps: int, undistort: bool = True, v
     on each (:func:`photometric_check`, held-out photographs registered in both); ``kept`` is True where the subset's
     renders them at least ``margin`` dB better (:data:`STRICT_MARGIN`). Returns what :func:`strict_check` records."""
     (rec, images), (other, other_images) = full, subset
-    rotations, subset_rotations = model_rotations(rec), model_rotations(other)
+    rotations, subset_rotations = model_rotations(rec, images), model_rotations(other, other_images)
     names, subset_names = set(rotations), set(subset_rotations)
     record = {"registered": len(subset_names), **rotation_agreement(subset_rotations, rotations)}
     if not subset_names < names or len(subset_names) <= CHECK_VIEWS + 2 or len(names - subset_names) < STRICT_MIN_LEFT_OUT:
@@ -1023,9 +1035,10 @@ def with_conflicts(candidates: "list[tuple[int, object, Path]]", unfoldings: "di
     only the 7-10 photos the two place alike."""
     if not any(u.get("conflicts", 0) >= unfold.MIN_CONFLICTS for u in unfoldings.values()):
         return []
-    clean = [rec for size, rec, _ in candidates if unfoldings.get(size, {}).get("conflicts_left", 1) == 0]
-    return [size for size, rec, _ in candidates
-            if unfoldings.get(size, {}).get("conflicts_left", 0) > 0 and any(not unfold.same_poses(rec, other) for other in clean)]  # fmt: skip
+    clean = [(rec, images) for size, rec, images in candidates if unfoldings.get(size, {}).get("conflicts_left", 1) == 0]
+    return [size for size, rec, images in candidates
+            if unfoldings.get(size, {}).get("conflicts_left", 0) > 0
+            and any(not unfold.same_poses(rec, other, images, other_images) for other, other_images in clean)]  # fmt: skip
 
 
 def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, time_left: "float | None", log,
@@ -1072,7 +1085,7 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
     most = max(c[1].num_reg_images() for c in candidates)  # one that registers far fewer photos is no alternative
     few = [c for c in candidates if c[1].num_reg_images() < MIN_REGISTERED_SHARE * most]  # no alternatives, but witnesses (rivals)
     candidates = [c for c in candidates if c[1].num_reg_images() >= MIN_REGISTERED_SHARE * most]
-    rotations = [model_rotations(other) for _, other, _ in candidates]
+    rotations = [model_rotations(other, other_images) for _, other, other_images in candidates]
     rows, groups = [], []  # groups: indices of candidates whose poses agree, the first of each its representative
     for i, (size, other, _) in enumerate(candidates):
         agreement = rotation_agreement(rotations[i], rotations[0])
@@ -1089,7 +1102,7 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
 
     def rivals(kept: int) -> dict:  # the reconstructions that do not corroborate candidate ``kept``'s poses
         group = next(g for g in groups if kept in g)
-        return {size: model_rotations(other) for size, other, _ in few} | {candidates[i][0]: rotations[i] for i in range(len(candidates)) if i not in group}
+        return {size: model_rotations(other, other_images) for size, other, other_images in few} | {candidates[i][0]: rotations[i] for i in range(len(candidates)) if i not in group}
 
     record["kept_max_image_size"] = candidates[0][0]  # unless the check below keeps another
     if len(groups) == 1:

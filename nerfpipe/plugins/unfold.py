@@ -153,12 +153,13 @@ def delete_pairs(database: Path, names: "list[tuple[str, str]]") -> None:
             db.delete_two_view_geometry(ids[a], ids[b])
 
 
-def same_poses(rec, other) -> bool:
+def same_poses(rec, other, images: "Path | None" = None, other_images: "Path | None" = None) -> bool:
     """Whether two reconstructions place their shared photos alike (``SAME_POSES`` of them within 5 degrees, as the sfm
-    stage compares reconstructions at two image sizes)."""
+    stage compares reconstructions at two image sizes); ``images``, ``other_images``: the folders they were mapped on,
+    where they are of two image sizes (upright rotations: :func:`nerfpipe.plugins.sfm.model_rotations`)."""
     from nerfpipe.plugins.sfm import SAME_POSES, model_rotations, rotation_agreement
 
-    agreement = rotation_agreement(model_rotations(rec), model_rotations(other))
+    agreement = rotation_agreement(model_rotations(rec, images), model_rotations(other, other_images))
     return agreement["agree"] >= SAME_POSES * agreement["shared"]
 
 
