@@ -698,6 +698,51 @@ def test_the_rotations_of_a_turned_photo_compare_upright(tmp_path):
     assert model_rotations(rec, tmp_path / "nothing" / "images").keys() == set(names)  # nothing turned there
 
 
+def _posed(names: "list[str]", rotations: "list[np.ndarray]"):
+    """A pycolmap reconstruction of ``names`` around the origin, ``cam_from_world`` rotations ``rotations``, no points."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=40, height=30, params=[35.0, 20.0, 15.0, 0.0], camera_id=1))
+    for image_id, (name, r) in enumerate(zip(names, rotations), start=1):
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(r), np.array([0.0, 0.0, 3.0]))  # each camera 3 from the origin
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=image_id), pose)
+    return rec
+
+
+def test_sizes_that_turned_different_photos_corroborate_each_other(tmp_path, monkeypatch):
+    """The size check sees the same poses where the 640 px reconstruction mapped a photo turned and the 1,024 px one
+    did not (photos_sacre_coeur, session 90: they read 90 degrees apart on it, disagreed, and a run kept 7 of 10)."""
+    import logging
+
+    from scipy.spatial.transform import Rotation
+
+    from nerfpipe.plugins import sfm
+
+    names = [f"{i:02d}.jpg" for i in range(10)]
+    upright = list(Rotation.random(len(names), random_state=3).as_matrix())
+    turned = {names[4]}
+    as_mapped = [np.array(sfm.QUARTER).T @ r if n in turned else r for n, r in zip(names, upright)]
+    folders = {}
+    for size in (1024, 640):
+        images = (tmp_path if size == 1024 else sfm.size_work(tmp_path, size)) / "images"
+        images.mkdir(parents=True)
+        if size == 640:
+            (images.parent / sfm.UPRIGHT_DIR).mkdir()
+            for name in turned:
+                (images.parent / sfm.UPRIGHT_DIR / name).write_bytes(b"upright")
+        folders[size] = images
+    other = _posed(names, as_mapped)
+    monkeypatch.setattr(sfm, "_candidate", lambda photos, work, config, left, log=None: (other, {}, folders[640], {"conflicts": 0, "conflicts_left": 0}))
+    config = sfm.SfmConfig(candidate_sizes=(640,))
+    rec, images, record, rivals = sfm._choose_by_size([Path(n) for n in names], tmp_path, config, (_posed(names, upright), folders[1024]), None,
+                                                      logging.getLogger("test"), {"conflicts": 0, "conflicts_left": 0})  # fmt: skip
+    assert record["corroborated"] and record["candidates"][1]["agree"] == 10 and rivals == {}, record
+    assert images == folders[1024] and "check_psnr" not in record["candidates"][1]
+    # what the comparison read before: the turned photo a quarter turn off, 9 of 10 alike (fewer than SAME_POSES asks)
+    assert sfm.rotation_agreement(sfm.model_rotations(other), sfm.model_rotations(rec))["agree"] == 9
+
+
 def test_a_portrait_photo_among_landscape_ones_shares_their_camera_and_keeps_its_pose(photos, tmp_path):
     """One of the Sceaux photos stored as a portrait (turned a quarter clockwise, as the same camera held upright
     would take it): mapped turned back with the others' camera, then given back upright, its camera is the others'
