@@ -220,6 +220,35 @@ def test_appearance_codes_are_zero_mean_and_identity_in_evaluation():
     assert float((per_image[0] - evaluated).abs().max()) > 1e-3  # and a single image's correction is not
 
 
+def test_robust_trim_leaves_each_batchs_largest_colour_errors_out():
+    """``robust_trim``: from ``behind_from`` on, the colour loss is the squared error of the batch's rays but its
+    largest ``robust_trim`` share, over the rays kept (a trimmed least squares), and the rays left out get no gradient;
+    before that step, and in evaluation, the plain mean squared error."""
+    from nerfpipe.models.base import RenderOutputs
+    from nerfpipe.models.fast import ROBUST_TRIM
+
+    assert _model().robust_trim == ROBUST_TRIM and _model(focal_spread=0.02).robust_trim == 0.0  # a collection / one camera
+    with pytest.raises(ValueError, match="robust_trim"):
+        FastConfig(robust_trim=1.0)
+    model = _model(robust_trim=0.25)
+    model.train()
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(8, 3, generator=gen).requires_grad_(True)
+    target = (rgb.detach() + 0.05 * torch.randn(8, 3, generator=gen)).index_add(0, torch.tensor([1, 5]), torch.full((2, 3), 0.6))
+    out = RenderOutputs(rgb=rgb, depth=torch.zeros(8), acc=torch.zeros(8))
+    model._step = model.cfg.behind_from - 1
+    assert torch.allclose(model.get_losses(out, target)["rgb"], torch.mean((rgb - target) ** 2))
+    model._step = model.cfg.behind_from
+    loss = model.get_losses(out, target)["rgb"]
+    kept = torch.tensor([0, 2, 3, 4, 6, 7])  # 6 of 8: the two largest errors left out
+    assert torch.allclose(loss, torch.mean((rgb[kept] - target[kept]) ** 2))
+    loss.backward()
+    assert torch.equal(rgb.grad[torch.tensor([1, 5])], torch.zeros(2, 3))
+    assert torch.allclose(rgb.grad[kept], 2 * (rgb - target).detach()[kept] / 18)
+    model.eval()
+    assert torch.allclose(model.get_losses(out, target)["rgb"], torch.mean((rgb - target) ** 2))
+
+
 def test_appearance_absorbs_a_per_image_exposure():
     """Two images of one grey scene, one 30 % darker: the codes learn the ratio, evaluation shows the mean."""
     torch.manual_seed(0)
