@@ -249,6 +249,31 @@ def test_robust_trim_leaves_each_batchs_largest_colour_errors_out():
     assert torch.allclose(model.get_losses(out, target)["rgb"], torch.mean((rgb - target) ** 2))
 
 
+def test_per_image_rows_are_gathered_with_a_backward_that_adds_in_order():
+    """:func:`nerfpipe.models.fast._per_image`: the rows of advanced indexing, and gradients that are the same bit for
+    bit from call to call on two threads (advanced indexing's backward, ``index_put_`` with ``accumulate``, differed in
+    the last bits from call to call there, and two trainings of a photo collection drifted apart from the first step)."""
+    from nerfpipe.models.fast import _per_image
+
+    gen = torch.Generator().manual_seed(0)
+    values, idx, grad = torch.randn(8, 12, generator=gen), torch.randint(8, (4, 1024), generator=gen), torch.randn(4096, 12, generator=gen)
+
+    def backward(gather):
+        leaf = values.clone().requires_grad_(True)
+        gather(leaf).backward(grad)
+        return leaf.grad
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        assert torch.equal(_per_image(values, idx), values[idx.reshape(-1)])
+        first = backward(lambda t: _per_image(t, idx))
+        assert torch.allclose(first, backward(lambda t: t[idx.reshape(-1)]), rtol=1e-5, atol=1e-5)
+        assert all(torch.equal(first, backward(lambda t: _per_image(t, idx))) for _ in range(20))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_appearance_absorbs_a_per_image_exposure():
     """Two images of one grey scene, one 30 % darker: the codes learn the ratio, evaluation shows the mean."""
     torch.manual_seed(0)

@@ -34,7 +34,7 @@ from nerfpipe.functional.gather import equirect_lookup
 from nerfpipe.functional.packed import accumulate_packed, composite_packed, distortion_loss_packed, prune_mask, quantile_depth_packed, render_weights_packed
 from nerfpipe.functional.volrend import binary_entropy
 from nerfpipe.models.base import Callback, Model, ModelSpec, RenderOutputs, SceneInfo
-from nerfpipe.util.typing import Float, Tensor
+from nerfpipe.util.typing import Float, Int, Tensor
 
 PRESETS: "dict[str, dict]" = {
     "small": dict(levels=(32, 64, 128), feature_channels=4, hidden=64, log2_hashmap_size=None),
@@ -103,6 +103,15 @@ itself (0.210): **24.88** / 23.96 and 24.16 / 24.00, hence a threshold above it.
 photo collections cost a single session dearly: the fields behind the box and of the table took each photo's light and
 their mean rendered a washed-out table: all on (``appearance=True``) 19.16 / 21.06 dB at 0.354 and 20.91 / 20.59 on
 colmap_mouse, the affine maps with the sky residual 19.33 / 21.66 and 21.70 / 21.46. See the session-65 row of docs/measured.md."""
+
+
+def _per_image(values: Float[Tensor, "num_images D"], cam_idx: Int[Tensor, "*bs"]) -> Float[Tensor, "num_rays D"]:
+    """Each ray's row of a per-image table, by ``index_select``: its backward adds each ray's gradient in order
+    (``index_add_``), where advanced indexing's (``index_put_`` with ``accumulate``) adds them in whatever order two CPU
+    threads reach them: two runs of a photo collection's training differed after one step (session 90: the
+    per-image colour corrections by 2e-10, the whole field by 0.6 after 25 steps, and the held-out figures of two
+    runs of the same variant by up to 0.9 dB after 900)."""
+    return values.index_select(0, cam_idx.reshape(-1).long())
 
 
 def photo_collection(info: SceneInfo) -> bool:
@@ -1263,9 +1272,10 @@ class FastModel(Model):
         w = delta[:, :3]
         zero = torch.zeros_like(w[:, 0])
         skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], dim=-1).view(-1, 3, 3)
-        rot = torch.linalg.matrix_exp(skew)[rays.cam_idx.reshape(-1)]
+        image = rays.cam_idx.reshape(-1).long()  # index_select: its backward adds in order (see _per_image)
+        rot = torch.linalg.matrix_exp(skew).index_select(0, image)
         directions = (rot @ rays.directions[:, :, None])[:, :, 0]
-        return replace(rays, origins=rays.origins + delta[rays.cam_idx.reshape(-1), 3:], directions=directions)
+        return replace(rays, origins=rays.origins + delta[:, 3:].index_select(0, image), directions=directions)
 
     def _sky_map(self, directions: Float[Tensor, "num_rays 3"]) -> Float[Tensor, "num_rays 3"]:
         """:attr:`FastConfig.sky_map` at each direction."""
@@ -1285,7 +1295,7 @@ class FastModel(Model):
         if self.image_codes is None:
             return None
         if self.training:
-            return (self.image_codes - self.image_codes.mean(0, keepdim=True))[rays.cam_idx.reshape(-1)]
+            return _per_image(self.image_codes - self.image_codes.mean(0, keepdim=True), rays.cam_idx)
         code = self.image_codes.new_zeros(self.image_codes.shape[1]) if self._view_appearance is None else self._view_appearance[12:]
         return code.expand(len(rays), -1)
 
@@ -1294,7 +1304,7 @@ class FastModel(Model):
         (:meth:`fitted_appearance`) while there is one."""
         if self._view_appearance is None:
             codes = self.appearance - self.appearance.mean(0, keepdim=True)
-            p = codes[cam_idx.reshape(-1)]
+            p = _per_image(codes, cam_idx)
         else:
             p = self._view_appearance[:12].expand(len(rgb), -1)
         matrix = p[:, :9].view(-1, 3, 3) + torch.eye(3, device=rgb.device, dtype=rgb.dtype)
