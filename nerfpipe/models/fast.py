@@ -449,17 +449,16 @@ ROBUST_TRIM = 0.1
 """``FastConfig.robust_trim`` of photo collections: a tenth of each batch's rays, those of the largest colour errors,
 left out of the colour loss. Their photographs disagree (people on the steps, each one's clouds); fitted anyway, what
 no other photograph contradicts went into the box as cloud floaters that every novel view showed over its own sky.
-photos_sacre_coeur (session 90; ``python -m benchmarks.side_by_side SFM --variants "base:robust_trim=0" "t10:robust_trim=0.1"
-"t20:robust_trim=0.2" --marks 300 600 900 --eval-views 2 --eval-max-size 400 --eval-supersample 1 --chunk 50
---threads 2``, the sfm folders of two runs of ``nerfpipe run``), right halves appearance fitted after 300 / 600 / 900 steps:
-folder A none 15.65 / 15.64 / 15.62 dB, 0.1 15.72 / 15.84 / 15.79, 0.2 15.74 / 15.77 / 15.79; folder B none 15.35 /
-15.35 / 15.86, 0.1 15.64 / 15.63 / 15.52, 0.2 15.53 / 15.54 / 15.70 (the mean of the six 15.58 / **15.69** / 15.68;
-colour fitted 14.57 / **14.63** / 14.46), 13.2-14.0 samples per ray after 900 steps against 14.5-15.8: the renders'
-sky around the church clear of the cloud floaters that none leaves, their depth of the floaters around it. These
-figures move by up to 0.9 dB between two runs of the same variant from 600 steps on (folder A's none after 900 scored
-14.73 in another run): a held-out view's fitted appearance depends on every step. One camera's session has no such
-photographs: colmap_mouse (7 views, 600 steps) 24.89 dB against 23.90 with 0.1 and 23.73 with 0.2, its largest errors
-are the detail still to learn."""
+photos_sacre_coeur (session 90; ``python -m benchmarks.side_by_side SFM --variants "base:robust_trim=0"
+"t10:robust_trim=0.1" --marks 300 600 900 --eval-views 2 --eval-max-size 400 --eval-supersample 1 --chunk 50
+--threads 2``, the sfm folders of two runs of ``nerfpipe run``, deterministic since :func:`_per_image`), right halves
+appearance fitted after 300 / 600 / 900 steps: folder A none 15.67 / 15.66 / 15.23 dB, 0.1 15.70 / 15.76 / **15.85**;
+folder B none 15.34 / 15.40 / 15.73, 0.1 **15.65** / 15.40 / 15.69 (the mean of the six 15.51 against **15.68**; colour
+fitted 14.64 against 14.62, the mean code's 0.1 lower), 13.3-13.9 samples per ray after 900 steps against 14.5-15.7:
+the renders' sky around the church clear of the cloud floaters, their depth of the fragments around it. 0.2 (before
+:func:`_per_image`, when runs of one variant differed by up to 0.9 dB after 900 steps) scored like 0.1 with a lower
+colour-fitted figure (14.46 against 14.63). One camera's session has no such photographs: colmap_mouse (7 views, 600
+steps) 24.89 dB against 23.90 with 0.1 and 23.73 with 0.2, its largest errors are the detail still to learn."""
 
 EVIDENCE_MIN_POINTS = 50
 """Sparse points in the box below which the evidence sparsity stays off (too few to say where surfaces are)."""
