@@ -247,6 +247,17 @@ def test_robust_trim_leaves_each_batchs_largest_colour_errors_out():
     assert torch.allclose(rgb.grad[kept], 2 * (rgb - target).detach()[kept] / 18)
     model.eval()
     assert torch.allclose(model.get_losses(out, target)["rgb"], torch.mean((rgb - target) ** 2))
+    # a captured CUDA step is captured again when the trim starts, on a scene without a field behind the box too
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), near=0.5, far=10.0, num_images=4, pixels_per_image=100, has_alpha=True)
+    for trim in (0.1, 0.0):
+        bounded = FastConfig(preset="small", fixed_shapes=True, robust_trim=trim).setup(info)
+        bounded.train()
+        assert bounded.behind is None
+        keys = []
+        for step in (bounded.cfg.behind_from - 1, bounded.cfg.behind_from):
+            bounded._step = step
+            keys.append(bounded.graph_key()[6])  # the flag of what starts at behind_from
+        assert keys == ([False, True] if trim else [False, False]), (trim, keys)
 
 
 def test_per_image_rows_are_gathered_with_a_backward_that_adds_in_order():

@@ -1125,7 +1125,8 @@ class FastModel(Model):
         if not (self._fixed_on(self.march_box.device) and torch.is_grad_enabled() and self.cfg.early_termination) or self._view_appearance is not None:
             return None
         step = self._march_step()
-        flags = ((self.behind is not None or self.plane is not None) and self._step >= self.cfg.behind_from, self._sparsity_on())
+        late = self.behind is not None or self.plane is not None or self.robust_trim > 0
+        flags = (late and self._step >= self.cfg.behind_from, self._sparsity_on())
         where = tuple((t.data_ptr(), tuple(t.shape)) for t in (*self.parameters(), *self.buffers()))
         return (step, self.step_size, self.grid.max_intervals(step), self._min_alpha(), self.field.active_levels,
                 self.field.density_levels, *flags, where)
