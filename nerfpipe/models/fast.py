@@ -105,7 +105,7 @@ their mean rendered a washed-out table: all on (``appearance=True``) 19.16 / 21.
 colmap_mouse, the affine maps with the sky residual 19.33 / 21.66 and 21.70 / 21.46. See the session-65 row of docs/measured.md."""
 
 
-def _per_image(values: Float[Tensor, "num_images D"], cam_idx: Int[Tensor, "*bs"]) -> Float[Tensor, "num_rays D"]:
+def _per_image(values: Float[Tensor, "num_images *rest"], cam_idx: Int[Tensor, "*bs"]) -> Float[Tensor, "num_rays *rest"]:
     """Each ray's row of a per-image table, by ``index_select``: its backward adds each ray's gradient in order
     (``index_add_``), where advanced indexing's (``index_put_`` with ``accumulate``) adds them in whatever order two CPU
     threads reach them: two runs of a photo collection's training differed after one step (session 90: the
@@ -1272,10 +1272,9 @@ class FastModel(Model):
         w = delta[:, :3]
         zero = torch.zeros_like(w[:, 0])
         skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], dim=-1).view(-1, 3, 3)
-        image = rays.cam_idx.reshape(-1).long()  # index_select: its backward adds in order (see _per_image)
-        rot = torch.linalg.matrix_exp(skew).index_select(0, image)
+        rot = _per_image(torch.linalg.matrix_exp(skew), rays.cam_idx)
         directions = (rot @ rays.directions[:, :, None])[:, :, 0]
-        return replace(rays, origins=rays.origins + delta[:, 3:].index_select(0, image), directions=directions)
+        return replace(rays, origins=rays.origins + _per_image(delta[:, 3:], rays.cam_idx), directions=directions)
 
     def _sky_map(self, directions: Float[Tensor, "num_rays 3"]) -> Float[Tensor, "num_rays 3"]:
         """:attr:`FastConfig.sky_map` at each direction."""
@@ -1315,8 +1314,8 @@ class FastModel(Model):
     ) -> "dict[str, Tensor]":
         if self.robust_trim > 0 and self.training and self._step >= self.cfg.behind_from:
             errors = ((outputs.rgb - target_rgb) ** 2).reshape(-1, 3).sum(-1)
-            kept = max(1, int(len(errors) * (1.0 - self.robust_trim)))
-            inlier = errors.detach() <= errors.detach().kthvalue(kept).values
+            kept, seen = max(1, int(len(errors) * (1.0 - self.robust_trim))), errors.detach()
+            inlier = seen <= seen.kthvalue(kept).values
             losses = {"rgb": (errors * inlier).sum() / (3 * kept)}
         else:
             losses = {"rgb": torch.mean((outputs.rgb - target_rgb) ** 2)}
