@@ -52,7 +52,7 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
     import pycolmap
 
     from nerfpipe.plugins import sfm
-    from nerfpipe.plugins.sfm import model_rotations, rotation_agreement
+    from nerfpipe.plugins.sfm import model_rotations, rotation_agreement, rotation_errors
 
     def by_stem(rotations: dict) -> dict:
         return {name.split(".")[0]: r for name, r in rotations.items()}
@@ -83,6 +83,8 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
                 rec, _ = sfm.unturn(rec, images)  # the photos upright, as the reference has them
                 seconds = time.monotonic() - start
                 agreement = rotation_agreement(by_stem(model_rotations(rec)), reference, cfg.tolerance)
+                errors = rotation_errors(by_stem(model_rotations(rec)), reference, cfg.tolerance)
+                agreement["off"] = {name: round(e, 1) for name, e in sorted(errors.items()) if e >= cfg.tolerance}
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
                                  focal_px=sorted({round(c.mean_focal_length()) for c in rec.cameras.values()}),

@@ -820,3 +820,29 @@ def test_heic_photos_are_reconstructed_under_their_own_names(photos, tmp_path):
     with pytest.raises(NerfpipeError, match="cannot decode HEIF image") as info:
         Pipeline(["sfm"], {"sfm": FAST}).run(heic, tmp_path / "broken")
     assert info.value.path is not None and info.value.path.name == names[0]
+
+
+def test_a_mapping_continued_from_a_reconstruction_registers_the_photos_it_lacks(photos, tmp_path):
+    """:func:`nerfpipe.plugins.sfm.extend_mapping` (an unfolding's reconstruction continued with every photo pair:
+    :func:`nerfpipe.plugins.unfold.extended`), through pycolmap: a reconstruction of the Sceaux photos with one of them
+    deregistered gets it back, and the photos it had stay where they were."""
+    import pycolmap
+
+    from nerfpipe.plugins import sfm, unfold
+
+    config = sfm.SfmConfig(**FAST)
+    sources = sorted((photos / "images").iterdir())
+    names = [sfm.sfm_name(p) for p in sources]
+    info = sfm.prepare_images(sources, tmp_path / "images", MAX_SIZE)
+    sfm.group_photos(tmp_path / "images", names, info, tmp_path / "grouped")
+    full, _ = sfm.reconstruct(tmp_path / "grouped", tmp_path, config, info)
+    posed = sorted(Path(i.name).name for i in full.images.values() if i.has_pose)
+    assert len(posed) >= 3
+    (tmp_path / "full").mkdir()
+    full.write(tmp_path / "full")
+    kept = pycolmap.Reconstruction(tmp_path / "full")
+    sfm.keep_registered(kept, set(posed[1:]))
+    assert kept.num_reg_images() == len(posed) - 1
+    other = sfm.extend_mapping(tmp_path, config, kept, tmp_path / "database.db", None)
+    assert other is not None and sorted(Path(i.name).name for i in other.images.values() if i.has_pose) == posed
+    assert unfold.same_poses(other, kept)

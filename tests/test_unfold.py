@@ -223,3 +223,64 @@ def test_a_remap_whose_conflicts_are_one_weakly_attached_photo_is_kept_without_i
     kept, record = unfold.unfold(_folded(_model(scene_path), set(names[::2])), database, tmp_path / "work", remap=lambda path: remapped)
     assert kept is remapped and record["kept"] and record["rounds"][0]["weakly_attached"] == [names[20]]
     assert kept.num_reg_images() == len(names) - 1 and unfold.view_conflicts(kept, pairs) == []
+
+
+def test_an_unfolding_that_left_photos_out_is_extended_with_those_placed_where_their_matches_agree(scene_path, tmp_path, monkeypatch):
+    """:func:`unfold.extended` and ``unfold.unfold(..., extend=)``: a remap that left a third of the photos out is
+    continued (the model itself standing in for the continued mapping); the continuation is kept with its photos,
+    without one whose matches disagree with where it sits; not where it moves the photos kept, leaves conflicts,
+    adds nothing once its misplaced photos are gone, or fails. A remap that registers every photo is not extended."""
+    from nerfpipe.plugins.sfm import keep_registered
+
+    rec = _model(scene_path)
+    pairs = _track_pairs(rec)
+    names = sorted(Path(image.name).name for image in rec.images.values() if image.has_pose)
+    monkeypatch.setattr(unfold, "verified_pairs", lambda database: pairs)
+    monkeypatch.setattr(unfold, "delete_pairs", lambda database, drop: None)
+    _points_per_match_as_verified(monkeypatch, rec, pairs)
+    database = tmp_path / "database.db"
+    database.write_bytes(b"")
+    left_out = set(names[2::3])
+
+    def remapped():  # what an unfolding kept: the right model without a third of its photos
+        part = _model(scene_path)
+        keep_registered(part, set(names) - left_out)
+        return part
+
+    extensions = []
+
+    def extend(kept):
+        assert {Path(i.name).name for i in kept.images.values() if i.has_pose} == set(names) - left_out
+        extensions.append(_model(scene_path))
+        return extensions[-1]
+
+    folded = _folded(_model(scene_path), set(names[::2]))
+    kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=lambda path: remapped(), extend=extend)
+    assert record["kept"] and kept is extensions[-1] and kept.num_reg_images() == len(names)
+    row = record["extended"]
+    assert row["kept"] and row["registered"] == row["final"] == len(names) and row["conflicts"] == 0 and not row["moved"]
+    assert set(row["new"]) == left_out and min(row["new"].values()) > unfold.WEAK_SHARE and "doubtful" not in row
+    kept, record = unfold.unfold(folded, database, tmp_path / "work", remap=lambda path: _model(scene_path), extend=extend)
+    assert kept.num_reg_images() == len(names) and "extended" not in record and len(extensions) == 1  # nothing left out
+
+    part = remapped()
+    wrong = names[20]  # (as in the test above: one whose neighbours keep their points)
+    one_misplaced = _folded(_model(scene_path), {wrong})  # a new photo placed where its matches disagree
+    image = next(i for i in one_misplaced.images.values() if Path(i.name).name == wrong)
+    for k in [k for k, p in enumerate(image.points2D) if p.has_point3D()][10:]:
+        one_misplaced.delete_observation(image.image_id, k)
+    record = {}
+    kept = unfold.extended(part, one_misplaced, pairs, record)
+    dropped = record["extended"].get("misplaced", []) + record["extended"].get("weakly_attached", [])
+    assert kept is one_misplaced and dropped == [wrong] and kept.num_reg_images() == len(names) - 1
+    moved = _folded(_model(scene_path), set(names[::2]))  # the photos kept placed otherwise: a fold again
+    record = {}
+    assert unfold.extended(part, moved, pairs, record) is part and record["extended"]["moved"] and not record["extended"]["kept"]
+    record = {}
+    assert unfold.extended(part, None, pairs, record) is part and record["extended"] == {"kept": False}
+    monkeypatch.setattr(unfold, "WEAK_SHARE", 1.01)  # every new photo's matches too few for one the fold had attached
+    record = {}
+    assert unfold.extended(part, _model(scene_path), pairs, record) is part and record["extended"]["doubtful"] == sorted(left_out)
+    monkeypatch.setattr(unfold, "view_conflicts", lambda rec, pairs: [(names[0], names[2])])  # two well attached photos
+    record = {}
+    assert unfold.extended(part, _model(scene_path), pairs, record) is part and record["extended"]["conflicts"] == 1

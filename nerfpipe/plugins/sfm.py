@@ -141,6 +141,9 @@ class SfmConfig:
     weak photo pairs that support it (:func:`nerfpipe.plugins.unfold.unfold`): on 23 of colmap_mouse's photos at
     1,024 px, three folded reconstructions (10-11 of 23 photos within 5 degrees of COLMAP's model of all 59) became
     20 of 22, 20 of 22 and 19 of 19, for 3 s of mapping each."""
+    extend_unfolded: bool = True
+    """Where an unfolding left photos out, map on from it with every photo pair, keeping the photos placed where their
+    matches agree (:func:`nerfpipe.plugins.unfold.extended`; 2-3 s for 23 photos)."""
     undistort: bool = True
     """Undistort the images into a PINHOLE model (otherwise keep the distorted model and photos)."""
     verbose: bool = False
@@ -786,6 +789,35 @@ def remap_unfolded(work: Path, config: SfmConfig, info, database: Path, needed: 
     return best
 
 
+EXTEND_SECONDS = 20.0
+"""Seconds at most that :func:`extend_mapping` may take (2-3 s for 23 photos at 1,024 px, session 91)."""
+
+
+def extend_mapping(work: Path, config: SfmConfig, kept, database: Path, time_left: "float | None"):
+    """The mapping of the photos grouped in ``work`` continued from the reconstruction ``kept`` (an unfolding's, of
+    the same database's photos) with every verified pair of ``database`` (:func:`nerfpipe.plugins.unfold.extended`):
+    the model it grows, its failed registrations dropped, or None where it fails."""
+    pycolmap = require("pycolmap", "colmap")
+    left = EXTEND_SECONDS if time_left is None else min(time_left, EXTEND_SECONDS)
+    mapping = _options(pycolmap, config, left)[2]
+    mapping.multiple_models = False
+    folder = work / "unfold" / "extend"
+    shutil.rmtree(folder, ignore_errors=True)
+    (folder / "input").mkdir(parents=True)
+    (folder / "sparse").mkdir()
+    kept.write(folder / "input")
+    try:
+        with _colmap_log(pycolmap, config.verbose):
+            models = pycolmap.incremental_mapping(database, work / "grouped", folder / "sparse", options=mapping, input_path=folder / "input")
+    except (RuntimeError, ValueError):  # COLMAP refuses the input (it checks the images against the database)
+        return None
+    if not models:
+        return None
+    other = max(models.values(), key=lambda r: r.num_reg_images())
+    drop_failed_registrations(other, config.max_centre_spread)
+    return other
+
+
 def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "float | None", log=None):
     """One reconstruction of ``photos`` in ``work`` at ``config.max_image_size``, unfolded where every pair of photos
     was matched (:attr:`SfmConfig.unfold`): (reconstruction, seconds, images folder, what the unfolding did)."""
@@ -803,8 +835,13 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
             left = None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
             return remap_unfolded(work, config, info, database, needed, left)
 
+        def extend(kept):
+            left = None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
+            return extend_mapping(work, config, kept, work / "database.db", left)
+
         longest = max(max(w, h) for w, h, _ in info)
-        rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap, weak=unfold.weak_inliers(longest))
+        rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap, weak=unfold.weak_inliers(longest),
+                                      extend=extend if config.extend_unfolded else None)
         seconds["unfold"] = time.monotonic() - t
         if unfolded.get("kept") and log is not None:
             kept = [r for r in unfolded["rounds"] if r.get("kept")][-1]
