@@ -43,6 +43,8 @@ class SfmPosesConfig:
     """Degrees within which a rotation agrees."""
     turn: bool = True
     """Photos of the rarer orientation turned to share their camera (``SfmConfig.turn``; session 72)."""
+    extend: bool = True
+    """An unfolding that left photos out continued with every photo pair (``SfmConfig.extend_unfolded``; session 91)."""
     budget: "float | None" = None
     """Seconds the stage has (the whole choice among image sizes, as under ``nerfpipe run --time-budget``); None: the
     first image size's reconstruction only."""
@@ -58,7 +60,9 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
         return {name.split(".")[0]: r for name, r in rotations.items()}
 
     reference = by_stem(model_rotations(pycolmap.Reconstruction(str(cfg.reference))))
-    config = sfm.SfmConfig(turn=cfg.turn) if cfg.budget else sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn)
+    config = sfm.SfmConfig(turn=cfg.turn, extend_unfolded=cfg.extend)
+    if not cfg.budget:
+        config = sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn, extend_unfolded=cfg.extend)
     options = sfm._options
     if cfg.seed is not None:
         def seeded(pycolmap, config, time_left):
@@ -88,7 +92,8 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),
                                  focal_px=sorted({round(c.mean_focal_length()) for c in rec.cameras.values()}),
-                                 **agreement, unfold=unfolded, **{k: chosen[k] for k in ("candidates", "with_conflicts", "still_folded", "strict") if k in chosen}))
+                                 **agreement, unfold=unfolded, **{k: chosen[k] for k in ("candidates", "with_conflicts", "still_folded", "strict") if k in chosen},
+                                 **({"unfold_other_sizes": chosen["unfold"]} if "unfold" in chosen else {})))
                 print(json.dumps(rows[-1]), flush=True)
     finally:
         sfm._options = options

@@ -315,6 +315,33 @@ def test_keep_consensus_keeps_the_photos_another_reconstruction_places_alike(sce
         record = keep_consensus(folded, {640: part}, keep_unshared=keep_unshared, unfolded=unfolded)
         assert record == {"max_image_size": 640, "kept": len(kept), "of": 16, "unshared": kept == all_but}, (keep_unshared, unfolded)
         assert sorted(model_rotations(folded)) == kept
+    # photos an unfolding's continuation added (they did not pass the unfolding) stay only where the rival places them alike
+    added = frozenset(names[8:10])
+    folded = pycolmap.Reconstruction(str(tmp_path / "folded" / "sparse" / "0"))
+    record = keep_consensus(folded, {640: part}, keep_unshared=True, added=added)
+    assert record["kept"] == len(all_but) - 2 and sorted(model_rotations(folded)) == sorted(set(all_but) - added)
+
+
+def test_photos_an_unfoldings_continuation_added_that_another_size_lacks_count_against_agreement():
+    """:func:`nerfpipe.plugins.sfm.added_agreement`: session 91's 640 px continuation that added 4 photos 148-167 degrees
+    off beside 11 shared right photos does not corroborate; 2 photos added to 19 leave 19 of 21 alike (0.9 needed)."""
+    from scipy.spatial.transform import Rotation
+
+    from nerfpipe.plugins.sfm import SAME_POSES, added_agreement
+
+    turns = Rotation.random(21, random_state=0).as_matrix()
+    names = [f"p{i}" for i in range(21)]
+    ours = dict(zip(names, turns))
+    other = {n: r for n, r in ours.items() if n not in ("p19", "p20")}
+    assert added_agreement(ours, other) == {"shared": 19, "agree": 19, "median_error": 0.0}  # without additions: as before
+    a = added_agreement(ours, other, frozenset({"p19", "p20"}))
+    assert (a["shared"], a["agree"]) == (21, 19) and a["agree"] >= SAME_POSES * a["shared"]
+    assert added_agreement(other, ours, other_added=frozenset({"p19", "p20"}))["shared"] == 21  # either side's additions
+    ours15 = {n: ours[n] for n in names[:15]}
+    other11 = {n: ours[n] for n in names[:11]}
+    a = added_agreement(ours15, other11, frozenset(names[11:15]))
+    assert (a["shared"], a["agree"]) == (15, 11) and a["agree"] < SAME_POSES * a["shared"]
+    assert added_agreement(ours, ours, frozenset({"p19"}))["shared"] == 21  # an addition the other has is compared as usual
 
 
 MINIATURE_MARGIN = 0.3
@@ -438,7 +465,7 @@ def test_a_fold_test_skipped_for_time_is_said(tmp_path, monkeypatch, caplog):
     assert len(caplog.records) == 1 and "may fold" in caplog.records[0].getMessage() and "--time-budget" in caplog.records[0].getMessage()
     caplog.clear()
     kept, passed = {"max_image_size": 640, "kept": 9, "of": 20, "unshared": False}, []
-    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None: passed.append(unfolded) or (kept if rivals else None))
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None, added=frozenset(): passed.append(unfolded) or (kept if rivals else None))
     with caplog.at_level(logging.WARNING, logger="test"):  # a rival reconstruction: the photos placed alike, said
         rec, images, record = sfm.strict_check([], tmp_path, sfm.SfmConfig(), chosen, 100.0, logging.getLogger("test"), rivals={640: {}},
                                                unfolded_sizes=frozenset({640}))  # fmt: skip
@@ -467,7 +494,7 @@ def test_the_consensus_keeps_the_photos_a_rival_lacks_only_where_not_one_conflic
     (tmp_path / "database.db").write_bytes(b"")
     chosen, seen = (object(), tmp_path / "images"), []
     monkeypatch.setattr(unfold, "verified_pairs", lambda database: {})
-    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None: seen.append(keep_unshared))
+    monkeypatch.setattr(sfm, "keep_consensus", lambda rec, rivals, keep_unshared=False, unfolded=frozenset(), images=None, added=frozenset(): seen.append(keep_unshared))
     photos = [tmp_path / f"{i}.jpg" for i in range(10)]
     for conflicts, unshared in (([], True), ([("a", "b")], False), ([("a", "b"), ("c", "d")], False)):
         monkeypatch.setattr(unfold, "view_conflicts", lambda rec, pairs, found=conflicts: found)
@@ -484,13 +511,15 @@ def test_an_unfolded_witness_limits_the_consensus_only_of_a_reconstruction_not_u
     from nerfpipe.plugins import sfm
 
     seen = []
-    monkeypatch.setattr(sfm, "strict_check", lambda photos, work, config, chosen, left, log, others, rivals, witnesses:
-                        seen.append(witnesses) or (*chosen, {}))
-    for kept, unfolded, witnesses in ((640, [1024], {1024}), (1024, [1024, 640], set()), (1024, [640], {640}), (1024, None, set())):
-        record = {"kept_max_image_size": kept, **({"unfolded": unfolded} if unfolded else {})}
+    monkeypatch.setattr(sfm, "strict_check", lambda photos, work, config, chosen, left, log, others, rivals, witnesses, added:
+                        seen.append((witnesses, added)) or (*chosen, {}))
+    for kept, unfolded, witnesses in ((640, [1024], {1024}), (1024, [1024, 640], set()), (1024, [640], {640}), (1024, None, set()),
+                                      (640, [1024, 640], set())):
+        # (and the photos an unfolding's continuation added to the kept one: session 91)
+        record = {"kept_max_image_size": kept, **({"unfolded": unfolded} if unfolded else {}), "added": {640: ["b.jpg"]}}
         monkeypatch.setattr(sfm, "_choose_by_size", lambda *args, r=record: ("rec", tmp_path / "images", dict(r), {640: {}}))
         sfm.choose_reconstruction([], tmp_path, sfm.SfmConfig(), ("rec", tmp_path / "images"), 100.0, logging.getLogger("test"))
-        assert seen[-1] == witnesses, (kept, unfolded)
+        assert seen[-1] == (witnesses, {"b.jpg"} if kept == 640 else set()), (kept, unfolded)
 
 
 class _Counted:

@@ -663,6 +663,18 @@ def rotation_agreement(rotations: "dict[str, object]", reference: "dict[str, obj
     return {"shared": len(errors), "agree": int((best < tolerance).sum()), "median_error": round(float(np.median(best)), 2)}
 
 
+def added_agreement(rotations: "dict[str, object]", other: "dict[str, object]", added: "frozenset[str]" = frozenset(),
+                    other_added: "frozenset[str]" = frozenset()) -> "dict[str, float | int]":
+    """:func:`rotation_agreement` of two reconstructions where the photos an unfolding's continuation added to one
+    (``added``, ``other_added``: :func:`nerfpipe.plugins.unfold.extended`) and the other lacks count as shared photos
+    that disagree: they did not pass the unfolding, and a reconstruction without them cannot vouch for them (23 of
+    colmap_mouse's photos from the second, session 91: a 640 px continuation added a block of 4 photos 148-167 degrees
+    off, without a conflict; 2 right photos added at 1,024 px to 19 leave 19 of 21 alike, still corroborated)."""
+    agreement = rotation_agreement(rotations, other)
+    unconfirmed = len((set(added) - set(other)) | (set(other_added) - set(rotations)))
+    return agreement | {"shared": agreement["shared"] + unconfirmed} if unconfirmed else agreement
+
+
 def rotation_errors(rotations: "dict[str, object]", reference: "dict[str, object]", tolerance: float = 5.0) -> "dict[str, float]":
     """Each shared photo's rotation error in degrees under :func:`rotation_agreement`'s alignment (the one under which
     most agree within ``tolerance``), by name."""
@@ -849,6 +861,11 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
                         "fold); mapped again without the weak photo pairs that agree with it: %d of %d photos registered, "
                         "%d such pairs left", config.max_image_size, unfolded["conflicts"], kept["registered"], len(photos),
                         kept["conflicts"])  # fmt: skip
+            extended = unfolded.get("extended", {})
+            if extended.get("kept"):
+                left_out = extended["registered"] - extended["final"]
+                log.warning("sfm: mapped on from it with every photo pair: %d of %d photos registered%s", extended["final"],
+                            len(photos), f" ({left_out} more left out: their matches disagree with where they were placed)" if left_out else "")
     flatten_names(rec)
     return rec, seconds, work / "images", unfolded
 
@@ -865,9 +882,10 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
         # witnesses whose unfolding left a block out, where the kept reconstruction was not itself unfolded (keep_consensus)
-        unfolded = frozenset(record.get("unfolded", ()))
-        witnesses = frozenset() if record.get("kept_max_image_size", config.max_image_size) in unfolded else unfolded
-        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals, witnesses)
+        unfolded, kept = frozenset(record.get("unfolded", ())), record.get("kept_max_image_size", config.max_image_size)
+        witnesses = frozenset() if kept in unfolded else unfolded
+        added = frozenset(record.get("added", {}).get(kept, ()))  # photos that did not pass the unfolding (unfold.extended)
+        rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals, witnesses, added)
     return rec, images, record
 
 
@@ -902,7 +920,7 @@ on a 2-core CPU; one or two weakly attached photos are left to the reconstructio
 
 def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, time_left: "float | None", log,
                  others: "tuple[Path, ...]" = (), rivals: "dict | None" = None,
-                 unfolded_sizes: "frozenset[int]" = frozenset()) -> "tuple[object, Path, dict]":
+                 unfolded_sizes: "frozenset[int]" = frozenset(), added: "frozenset[str]" = frozenset()) -> "tuple[object, Path, dict]":
     """``chosen`` (``(rec, images folder)``), or the strict reconstruction (the chosen reconstruction's own verified
     matches, those of its image size, mapped again in ``work`` without the photo pairs of fewer than
     ``strict_min_inliers``, then fewer (:func:`strict_thresholds`), then the same with the matches of the work folders
@@ -923,7 +941,7 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
         database = images.parent / "database.db"
         unfolded = config.unfold and len(photos) <= config.exhaustive_max_photos and database.is_file()
         unshared = bool(unfolded and not unfold.view_conflicts(rec, unfold.verified_pairs(database)))  # not one conflict
-        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes, images=images)
+        consensus = keep_consensus(rec, rivals or {}, keep_unshared=unshared, unfolded=unfolded_sizes, images=images, added=added)
         if consensus:
             log.warning("sfm: no time to test the reconstruction for a fold (%.0f s left): kept the %d of its %d photos that the "
                         "%d px reconstruction %s (a run with a larger --time-budget tests them all)", time_left,
@@ -971,7 +989,7 @@ def strict_check(photos: "list[Path]", work: Path, config: SfmConfig, chosen, ti
 
 
 def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, unfolded: "frozenset[int]" = frozenset(),
-                   images: "Path | None" = None) -> "dict | None":
+                   images: "Path | None" = None, added: "frozenset[str]" = frozenset()) -> "dict | None":
     """Deregister from ``rec`` the photos that no reconstruction in ``rivals`` (rotations by name, by image size) places
     alike (:func:`rotation_errors` within 5 degrees), taking the rival that agrees on the most; where that leaves more
     than :data:`CHECK_VIEWS` + 2 photos and fewer than all. ``keep_unshared`` (where ``rec`` shows no sign of a fold:
@@ -990,7 +1008,9 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     conflict, 4 of them 148-166 degrees off and absent at 1,024 px: all 15 were kept. Only where ``rec`` was not unfolded
     itself (:func:`choose_reconstruction`): an unfolded reconstruction's photos passed that test, and an unfolded 640 px
     witness of 11 photos (23 of colmap_mouse's photos as HEIC) made the unfolded 1,024 px one's 18-19 right photos 11
-    in 2 of 5 runs. ``images``: the folder ``rec`` was mapped on (upright rotations: :func:`model_rotations`). Returns what was kept
+    in 2 of 5 runs. ``added``: photos an unfolding's continuation added to ``rec`` (:func:`nerfpipe.plugins.unfold.extended`),
+    kept only where the rival places them alike (they did not pass the unfolding). ``images``: the folder ``rec`` was
+    mapped on (upright rotations: :func:`model_rotations`). Returns what was kept
     (``unshared``: whether the photos the rival lacks were), or None where nothing was."""
     if not rivals:
         return None
@@ -999,7 +1019,7 @@ def keep_consensus(rec, rivals: "dict[int, dict]", keep_unshared: bool = False, 
     for size, rival in rivals.items():
         errors = rotation_errors(rotations, rival)
         unshared = keep_unshared and size not in unfolded
-        alike = {n for n, e in errors.items() if e < 5.0} | ({n for n in rotations if n not in errors} if unshared else set())
+        alike = {n for n, e in errors.items() if e < 5.0} | ({n for n in rotations if n not in errors and n not in added} if unshared else set())
         if best is None or len(alike) > len(best[1]):
             best = size, alike, unshared
     if best is None or not CHECK_VIEWS + 2 < len(best[1]) < len(rotations):
@@ -1113,6 +1133,9 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
     unfolded = [size for size, u in unfoldings.items() if u.get("kept")]  # unfold.unfold keeps a remap only of a fold
     if unfolded:  # a fold found and undone at these sizes (keep_consensus)
         record["unfolded"] = unfolded
+    added = {size: frozenset(u["extended"]["added"]) for size, u in unfoldings.items() if u.get("extended", {}).get("kept")}
+    if added:  # and continued with the photos the unfolding had left out (unfold.extended)
+        record["added"] = {size: sorted(names) for size, names in added.items()}
     conflicted = with_conflicts(candidates, unfoldings)
     if conflicted:
         record["with_conflicts"] = conflicted
@@ -1124,11 +1147,16 @@ def _choose_by_size(photos: "list[Path]", work: Path, config: SfmConfig, first, 
     candidates = [c for c in candidates if c[1].num_reg_images() >= MIN_REGISTERED_SHARE * most]
     rotations = [model_rotations(other, other_images) for _, other, other_images in candidates]
     rows, groups = [], []  # groups: indices of candidates whose poses agree, the first of each its representative
+    sizes = [c[0] for c in candidates]
+
+    def agreement_of(i: int, j: int) -> dict:  # the photos an extension added that the other lacks count as unconfirmed
+        return added_agreement(rotations[i], rotations[j], added.get(sizes[i], frozenset()), added.get(sizes[j], frozenset()))
+
     for i, (size, other, _) in enumerate(candidates):
-        agreement = rotation_agreement(rotations[i], rotations[0])
+        agreement = agreement_of(i, 0)
         rows.append({"max_image_size": size, "registered": other.num_reg_images(), **agreement})
         for group in groups:
-            a = agreement if group[0] == 0 else rotation_agreement(rotations[i], rotations[group[0]])
+            a = agreement if group[0] == 0 else agreement_of(i, group[0])
             if a["agree"] >= SAME_POSES * a["shared"]:
                 group.append(i)
                 break

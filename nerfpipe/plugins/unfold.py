@@ -239,7 +239,12 @@ def extended(kept, other, pairs: dict, record: dict):
     side the fold had put elsewhere. Registered to the unfolded reconstruction's points, they are placed by where those
     points are, not by the fold (session 91: 23 of colmap_mouse's photos, unfolded at 1,024 px to 19 of 23, all within
     5 degrees of COLMAP's model of all 56: continued, 23 registered, two of the four new ones 33 and 37 degrees off,
-    both :func:`misplaced` (0.34 and 0.42 of their matches agree), the other two 1.4 and 2.9 degrees off; 21 kept)."""
+    both :func:`misplaced` (0.34 and 0.42 of their matches agree), the other two 1.4 and 2.9 degrees off; 21 kept).
+    What it cannot see is a block of new photos placed on the wrong side as a whole: on 23 photos from the second, a
+    640 px unfolding continued with 4 photos 148-167 degrees off, 0.89-1.0 of their matches agreeing and no conflict
+    (in 2 of 5 runs). Such photos did not pass the unfolding: another image size's reconstruction vouches for them
+    only where it places them alike (``row["added"]``: ``sfm._choose_by_size`` counts the added photos another size
+    lacks against their agreement, ``sfm.keep_consensus`` keeps them only where a rival places them alike)."""
     if other is None:
         record["extended"] = {"kept": False}
         return kept
@@ -264,6 +269,8 @@ def extended(kept, other, pairs: dict, record: dict):
             keep_registered(other, set(_posed(other)) - set(doubtful))
             row["doubtful"] = doubtful
     row["kept"] = not conflicts and not row["moved"] and other.num_reg_images() > kept.num_reg_images()
+    if row["kept"]:  # the photos that did not pass the unfolding (sfm._choose_by_size, sfm.keep_consensus)
+        row["added"] = sorted(set(_posed(other)) - set(_posed(kept)))
     record["extended"] = row | {"final": other.num_reg_images()}
     return other if row["kept"] else kept
 
