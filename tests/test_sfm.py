@@ -512,7 +512,7 @@ def test_an_unfolded_witness_limits_the_consensus_only_of_a_reconstruction_not_u
 
     seen = []
     monkeypatch.setattr(sfm, "strict_check", lambda photos, work, config, chosen, left, log, others, rivals, witnesses, added:
-                        seen.append((witnesses, added)) or (*chosen, {}))
+                        seen.append((witnesses, added)) or (*chosen, {"consensus": {}}))
     for kept, unfolded, witnesses in ((640, [1024], {1024}), (1024, [1024, 640], set()), (1024, [640], {640}), (1024, None, set()),
                                       (640, [1024, 640], set())):
         # (and the photos an unfolding's continuation added to the kept one: session 91)
@@ -520,6 +520,30 @@ def test_an_unfolded_witness_limits_the_consensus_only_of_a_reconstruction_not_u
         monkeypatch.setattr(sfm, "_choose_by_size", lambda *args, r=record: ("rec", tmp_path / "images", dict(r), {640: {}}))
         sfm.choose_reconstruction([], tmp_path, sfm.SfmConfig(), ("rec", tmp_path / "images"), 100.0, logging.getLogger("test"))
         assert seen[-1] == (witnesses, {"b.jpg"} if kept == 640 else set()), (kept, unfolded)
+
+
+def test_photos_an_unfoldings_continuation_added_are_left_out_where_no_other_size_vouched_for_them(scene_path, tmp_path, monkeypatch):
+    """``choose_reconstruction``: the photos :func:`nerfpipe.plugins.unfold.extended` added to the kept reconstruction
+    stay where another image size corroborates it or the consensus vetted them, and are left out where neither happened
+    (session 91: a 1,024 px fold not undone, so no witness, and a 640 px continuation adding 3 photos 147-162 degrees off)."""
+    import logging
+
+    import pycolmap
+
+    from nerfpipe.plugins import sfm
+
+    model = scene_path("colmap_mouse") / "sparse" / "0"
+    names = sorted(sfm.model_rotations(pycolmap.Reconstruction(str(model))))
+    added = names[:2]
+    for corroborated, strict, left_out in ((False, {"skipped": "too little time left"}, added), (True, None, []),
+                                           (False, {"skipped": "too little time left", "consensus": {"kept": 10}}, [])):
+        rec = pycolmap.Reconstruction(str(model))
+        record = {"kept_max_image_size": 640, "added": {640: added}, "corroborated": corroborated}
+        monkeypatch.setattr(sfm, "_choose_by_size", lambda *args, r=record, m=rec: (m, tmp_path / "images", dict(r), {}))
+        monkeypatch.setattr(sfm, "strict_check", lambda photos, work, config, chosen, *args, s=strict: (*chosen, dict(s)))
+        kept, _, out = sfm.choose_reconstruction([], tmp_path, sfm.SfmConfig(), (rec, tmp_path / "images"), 100.0, logging.getLogger("test"))
+        assert sorted(set(names) - set(sfm.model_rotations(kept))) == left_out, (corroborated, strict)
+        assert out.get("added_left_out", []) == left_out
 
 
 class _Counted:

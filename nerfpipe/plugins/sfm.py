@@ -878,14 +878,22 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
     agrees with it; returns it, its images folder and what was decided."""
     started = time.monotonic()
     rec, images, record, rivals = _choose_by_size(photos, work, config, first, time_left, log, first_unfolded)
+    chosen, kept = rec, record.get("kept_max_image_size", config.max_image_size)
+    added = frozenset(record.get("added", {}).get(kept, ()))  # photos that did not pass the unfolding (unfold.extended)
     if config.strict_min_inliers > 0 and len(photos) <= config.candidate_max_photos and not record.get("corroborated", False):
         left = None if time_left is None else time_left - (time.monotonic() - started)
         others = [work] + [size_work(work, size) for size in config.candidate_sizes if (size_work(work, size) / "database.db").is_file()]
         # witnesses whose unfolding left a block out, where the kept reconstruction was not itself unfolded (keep_consensus)
-        unfolded, kept = frozenset(record.get("unfolded", ())), record.get("kept_max_image_size", config.max_image_size)
+        unfolded = frozenset(record.get("unfolded", ()))
         witnesses = frozenset() if kept in unfolded else unfolded
-        added = frozenset(record.get("added", {}).get(kept, ()))  # photos that did not pass the unfolding (unfold.extended)
         rec, images, record["strict"] = strict_check(photos, work, config, (rec, images), left, log, tuple(others), rivals, witnesses, added)
+    if added and rec is chosen and not record.get("corroborated", False) and "consensus" not in record.get("strict", {}):
+        # no other image size vouched for them (none agrees, or none is left to compare: 23 of colmap_mouse's photos from
+        # the second, session 91, a 1,024 px fold not undone and a 640 px continuation adding 3 photos 147-162 degrees off)
+        names = set(model_rotations(rec))
+        if names & added:
+            keep_registered(rec, names - added)
+            record["added_left_out"] = sorted(names & added)
     return rec, images, record
 
 
