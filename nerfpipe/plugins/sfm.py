@@ -667,12 +667,17 @@ def added_agreement(rotations: "dict[str, object]", other: "dict[str, object]", 
                     other_added: "frozenset[str]" = frozenset()) -> "dict[str, float | int]":
     """:func:`rotation_agreement` of two reconstructions where the photos an unfolding's continuation added to one
     (``added``, ``other_added``: :func:`nerfpipe.plugins.unfold.extended`) and the other lacks count as shared photos
-    that disagree: they did not pass the unfolding, and a reconstruction without them cannot vouch for them (23 of
-    colmap_mouse's photos from the second, session 91: a 640 px continuation added a block of 4 photos 148-167 degrees
-    off, without a conflict; 2 right photos added at 1,024 px to 19 leave 19 of 21 alike, still corroborated)."""
+    that disagree, where they are more than the share of photos that may disagree (``1 - SAME_POSES`` of them all): they
+    did not pass the unfolding, and a reconstruction without them cannot vouch for a block of them (23 of
+    colmap_mouse's photos from the second, session 91: 640 px continuations added blocks of 2-4 photos 147-167 degrees
+    off to 11-13, without a conflict). A photo or two beside many are left to the comparison of the others (the 23
+    photos from the first: 2 right photos added at 1,024 px to 19, where the 640 px reconstruction placed 18 of those
+    19 alike: counted, the consensus kept 18 of 21 in 2 of 4 runs)."""
     agreement = rotation_agreement(rotations, other)
     unconfirmed = len((set(added) - set(other)) | (set(other_added) - set(rotations)))
-    return agreement | {"shared": agreement["shared"] + unconfirmed} if unconfirmed else agreement
+    if unconfirmed <= int((1.0 - SAME_POSES) * (agreement["shared"] + unconfirmed) + 1e-9):
+        return agreement
+    return agreement | {"shared": agreement["shared"] + unconfirmed}
 
 
 def rotation_errors(rotations: "dict[str, object]", reference: "dict[str, object]", tolerance: float = 5.0) -> "dict[str, float]":
@@ -894,6 +899,8 @@ def choose_reconstruction(photos: "list[Path]", work: Path, config: SfmConfig, f
         if names & added:
             keep_registered(rec, names - added)
             record["added_left_out"] = sorted(names & added)
+            log.warning("sfm: left out the %d photos that mapping on from the unfolding added: no reconstruction at another "
+                        "image size places them alike", len(record["added_left_out"]))
     return rec, images, record
 
 
