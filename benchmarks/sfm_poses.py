@@ -60,9 +60,7 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
         return {name.split(".")[0]: r for name, r in rotations.items()}
 
     reference = by_stem(model_rotations(pycolmap.Reconstruction(str(cfg.reference))))
-    config = sfm.SfmConfig(turn=cfg.turn, extend_unfolded=cfg.extend)
-    if not cfg.budget:
-        config = sfm.SfmConfig(candidate_sizes=(), turn=cfg.turn, extend_unfolded=cfg.extend)
+    config = sfm.SfmConfig(turn=cfg.turn, extend_unfolded=cfg.extend, **({} if cfg.budget else {"candidate_sizes": ()}))
     options = sfm._options
     if cfg.seed is not None:
         def seeded(pycolmap, config, time_left):
@@ -86,8 +84,9 @@ def main(cfg: SfmPosesConfig) -> "list[dict]":
                     rec, images, chosen = sfm.choose_reconstruction(photos, work, config, (rec, images), left(), log, unfolded)
                 rec, _ = sfm.unturn(rec, images)  # the photos upright, as the reference has them
                 seconds = time.monotonic() - start
-                agreement = rotation_agreement(by_stem(model_rotations(rec)), reference, cfg.tolerance)
-                errors = rotation_errors(by_stem(model_rotations(rec)), reference, cfg.tolerance)
+                rotations = by_stem(model_rotations(rec))
+                agreement = rotation_agreement(rotations, reference, cfg.tolerance)
+                errors = rotation_errors(rotations, reference, cfg.tolerance)
                 agreement["off"] = {name: round(e, 1) for name, e in sorted(errors.items()) if e >= cfg.tolerance}
                 rows.append(dict(run=run, photos=len(photos), registered=rec.num_reg_images(), points=rec.num_points3D(),
                                  reprojection_px=round(rec.compute_mean_reprojection_error(), 3), seconds=round(seconds, 1),

@@ -848,13 +848,14 @@ def _candidate(photos: "list[Path]", work: Path, config: SfmConfig, time_left: "
     if config.unfold and len(photos) <= config.exhaustive_max_photos:
         t, needed = time.monotonic(), -(-rec.num_reg_images() // 3)  # what unfold.unfold keeps a remap from
 
+        def left() -> "float | None":
+            return None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
+
         def remap(database: Path):
-            left = None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
-            return remap_unfolded(work, config, info, database, needed, left)
+            return remap_unfolded(work, config, info, database, needed, left())
 
         def extend(kept):
-            left = None if time_left is None else max(1.0, time_left - (time.monotonic() - started))
-            return extend_mapping(work, config, kept, work / "database.db", left)
+            return extend_mapping(work, config, kept, work / "database.db", left())
 
         longest = max(max(w, h) for w, h, _ in info)
         rec, unfolded = unfold.unfold(rec, work / "database.db", work / "unfold" / "pairs", remap, weak=unfold.weak_inliers(longest),

@@ -206,13 +206,7 @@ def unfold(rec, database: Path, work: Path, remap, rounds: int = UNFOLD_ROUNDS, 
         left = view_conflicts(other, pairs)
         tried.append({"pairs_left_out": len(drop), "registered": other.num_reg_images(), "conflicts": len(left),
                       "moved": not same_poses(other, rec)})  # fmt: skip
-        weak_ones = conflicts_explained(other, pairs, left, WEAK_POINTS_PER_MATCH) if left else []
-        if weak_ones:  # the conflicts left are a photo or two that the mapping attached by few points: without them, none
-            from nerfpipe.plugins.sfm import keep_registered
-
-            keep_registered(other, set(_posed(other)) - set(weak_ones))
-            tried[-1]["weakly_attached"] = weak_ones
-            left = []
+        left = _without_weakly_attached(other, pairs, left, tried[-1])
         if not left:
             if 3 * other.num_reg_images() >= rec.num_reg_images():
                 best = other
@@ -248,14 +242,10 @@ def extended(kept, other, pairs: dict, record: dict):
     if other is None:
         record["extended"] = {"kept": False}
         return kept
-    row: dict = {"registered": other.num_reg_images()}
-    conflicts = view_conflicts(other, pairs)
-    weak_ones = conflicts_explained(other, pairs, conflicts, WEAK_POINTS_PER_MATCH) if conflicts else []
-    if weak_ones:
-        from nerfpipe.plugins.sfm import keep_registered
+    from nerfpipe.plugins.sfm import keep_registered
 
-        keep_registered(other, set(_posed(other)) - set(weak_ones))
-        row["weakly_attached"], conflicts = weak_ones, []
+    row: dict = {"registered": other.num_reg_images()}
+    conflicts = _without_weakly_attached(other, pairs, view_conflicts(other, pairs), row)
     row |= {"conflicts": len(conflicts), "moved": not same_poses(other, kept)}
     if not conflicts and not row["moved"]:
         _drop_misplaced(other, pairs, row, unfolded=True)
@@ -264,8 +254,6 @@ def extended(kept, other, pairs: dict, record: dict):
         row["new"] = {name: round(share, 3) for name, (share, _) in evidence.items() if name not in before}
         doubtful = sorted(name for name, share in row["new"].items() if share < WEAK_SHARE)
         if doubtful:  # attached by the fold's weak pairs before: kept only where their matches agree as a right photo's do
-            from nerfpipe.plugins.sfm import keep_registered
-
             keep_registered(other, set(_posed(other)) - set(doubtful))
             row["doubtful"] = doubtful
     row["kept"] = not conflicts and not row["moved"] and other.num_reg_images() > kept.num_reg_images()
@@ -273,6 +261,20 @@ def extended(kept, other, pairs: dict, record: dict):
         row["added"] = sorted(set(_posed(other)) - set(_posed(kept)))
     record["extended"] = row | {"final": other.num_reg_images()}
     return other if row["kept"] else kept
+
+
+def _without_weakly_attached(rec, pairs: dict, conflicts: "list[tuple[str, str]]", record: dict) -> "list[tuple[str, str]]":
+    """The conflicts of ``rec`` left once the photos that explain them all (:func:`conflicts_explained`: a photo or two
+    the mapping attached by few points) are deregistered, recorded in ``record["weakly_attached"]``: ``[]`` where they
+    are, else ``conflicts`` unchanged."""
+    weak_ones = conflicts_explained(rec, pairs, conflicts, WEAK_POINTS_PER_MATCH) if conflicts else []
+    if not weak_ones:
+        return conflicts
+    from nerfpipe.plugins.sfm import keep_registered
+
+    keep_registered(rec, set(_posed(rec)) - set(weak_ones))
+    record["weakly_attached"] = weak_ones
+    return []
 
 
 def _drop_misplaced(rec, pairs: dict, record: dict, unfolded: bool) -> None:
